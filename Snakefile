@@ -1,0 +1,18 @@
+# PiG-Avatar pipeline. `snakemake --cores 2` builds the default target (the synthetic table);
+# see README.md and ../shared/DESIGN.md. Rules live in workflow/rules/*.smk.
+from snakemake.utils import validate
+
+
+configfile: "config/config.yaml"
+
+
+validate(config, "config/schema/config.schema.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/data.smk"
+
+
+rule all:
+    input:
+        default_targets(),

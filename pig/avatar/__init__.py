@@ -1,0 +1,1 @@
+"""Anchors, levels of detail, decoders and the avatar model."""

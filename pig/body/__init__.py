@@ -1,0 +1,1 @@
+"""Skinned body model (SMPL-X layout), surface frames and anchor transport."""

@@ -1,0 +1,187 @@
+"""Linear blend skinning of a body model stored in the SMPL-X npz layout (FORMATS.md).
+
+Order: shape + expression blend, joints regressed from the shaped vertices, pose blend from
+(R_j - I) of joints 1..54, rigid chain, skinning, translation last.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .rotation import axis_angle_to_matrix
+
+NUM_JOINTS = 55
+SMPLX_PARENTS = [
+    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
+    20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
+    21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53,
+]
+_FINGERS = ["index", "middle", "pinky", "ring", "thumb"]
+SMPLX_JOINT_NAMES = [
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "jaw",
+    "left_eye", "right_eye",
+] + [f"{side}_{finger}{k}" for side in ("left", "right") for finger in _FINGERS for k in (1, 2, 3)]
+# Slices of the 55 x 3 full pose (FORMATS.md: global, body 21, jaw, eyes, hands 15 + 15).
+LEFT_HAND = slice(25, 40)
+RIGHT_HAND = slice(40, 55)
+REQUIRED_KEYS = ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
+
+
+class BodyModelError(ValueError):
+    """A body-model file does not follow the SMPL-X npz layout."""
+
+
+@dataclass
+class BodyOutput:
+    vertices: torch.Tensor  # (B, V, 3) posed, translated
+    joints: torch.Tensor  # (B, 55, 3) posed, translated
+    transforms: torch.Tensor  # (B, 55, 4, 4) skinning transforms A_j (translation not included)
+    shaped_vertices: torch.Tensor  # (B, V, 3) rest pose after shape + expression blend
+
+
+def _dense(array) -> np.ndarray:
+    if hasattr(array, "toarray"):  # scipy sparse J_regressor in some files
+        return array.toarray()
+    if array.dtype == object:  # a sparse matrix pickled into an npz 0-d object array
+        return np.asarray(array.item().toarray())
+    return np.asarray(array)
+
+
+def _shape_split(num_columns: int) -> int:
+    """Index where expression columns start: 300 in 400-column files, half in older ones."""
+    return 300 if num_columns >= 400 else num_columns // 2
+
+
+class BodyModel(nn.Module):
+    """SMPL-X-layout skinning model; `forward` is batched over frames, in the buffers' dtype."""
+
+    def __init__(self, arrays: dict[str, np.ndarray], source: str = "<arrays>"):
+        super().__init__()
+        missing = [k for k in REQUIRED_KEYS if k not in arrays]
+        if missing:
+            raise BodyModelError(f"{source}: missing key(s) {missing}; an SMPL-X model npz has {list(REQUIRED_KEYS)}")
+        v_template = np.asarray(arrays["v_template"], dtype=np.float64)
+        num_vertices = v_template.shape[0]
+        faces = np.asarray(arrays["f"], dtype=np.int64)
+        shapedirs = np.asarray(arrays["shapedirs"], dtype=np.float64)
+        posedirs = np.asarray(arrays["posedirs"], dtype=np.float64)
+        j_regressor = _dense(arrays["J_regressor"]).astype(np.float64)
+        weights = np.asarray(arrays["weights"], dtype=np.float64)
+        parents = np.asarray(arrays["kintree_table"])[0].astype(np.int64).copy()
+        parents[0] = -1
+        expected = {
+            "v_template": (v_template.shape, (num_vertices, 3)),
+            "shapedirs": (shapedirs.shape[:2], (num_vertices, 3)),
+            "posedirs": (posedirs.shape, (num_vertices, 3, (NUM_JOINTS - 1) * 9)),
+            "J_regressor": (j_regressor.shape, (NUM_JOINTS, num_vertices)),
+            "weights": (weights.shape, (num_vertices, NUM_JOINTS)),
+            "kintree_table": (parents.shape, (NUM_JOINTS,)),
+        }
+        for key, (found, want) in expected.items():
+            if tuple(found) != tuple(want):
+                raise BodyModelError(f"{source}: '{key}' has shape {tuple(found)}, expected {want}")
+        if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= num_vertices:
+            raise BodyModelError(f"{source}: 'f' must be (F, 3) vertex indices below {num_vertices}")
+        if np.any(parents[1:] >= np.arange(1, NUM_JOINTS)) or np.any(parents[1:] < 0):
+            raise BodyModelError(f"{source}: kintree_table parents must precede their children")
+        split = _shape_split(shapedirs.shape[2])
+        self.num_betas = split
+        self.num_expression = shapedirs.shape[2] - split
+        self.source = source
+        self.register_buffer("v_template", torch.from_numpy(v_template))
+        self.register_buffer("faces", torch.from_numpy(faces), persistent=False)
+        self.register_buffer("shapedirs", torch.from_numpy(shapedirs))
+        # (486, V*3): row k holds the vertex offsets of pose-feature entry k.
+        self.register_buffer("posedirs", torch.from_numpy(posedirs.reshape(num_vertices * 3, -1).T.copy()))
+        self.register_buffer("j_regressor", torch.from_numpy(j_regressor))
+        self.register_buffer("weights", torch.from_numpy(weights))
+        self.parents = parents.tolist()
+        hands_mean = np.zeros((NUM_JOINTS, 3))
+        for key, part in (("hands_meanl", LEFT_HAND), ("hands_meanr", RIGHT_HAND)):
+            if key in arrays:
+                hands_mean[part] = np.asarray(arrays[key], dtype=np.float64).reshape(15, 3)
+        self.register_buffer("hands_mean", torch.from_numpy(hands_mean))
+        self.to(torch.float32)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "BodyModel":
+        path = Path(path)
+        if not path.is_file():
+            raise BodyModelError(f"body model file {path} does not exist (expected an SMPL-X npz such as SMPLX_NEUTRAL.npz)")
+        try:
+            with np.load(path, allow_pickle=True) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError) as err:
+            raise BodyModelError(f"{path}: not a readable npz file: {err}") from None
+        return cls(arrays, source=str(path))
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.v_template.dtype
+
+    def with_hand_mean(self, full_pose: torch.Tensor) -> torch.Tensor:
+        """Add the model's mean hand pose (for parameters fitted with `flat_hand_mean=False`)."""
+        return full_pose + self.hands_mean.to(full_pose)
+
+    def forward(
+        self,
+        full_pose: torch.Tensor,
+        betas: torch.Tensor | None = None,
+        expression: torch.Tensor | None = None,
+        transl: torch.Tensor | None = None,
+    ) -> BodyOutput:
+        """Pose the model.
+
+        full_pose: (B, 55, 3) or (B, 165) axis-angle; betas: (nb,), (1, nb) or (B, nb), nb <= num_betas;
+        expression: (B, ne) or (ne,); transl: (B, 3). Missing parameters are zeros.
+        """
+        dtype, device = self.dtype, self.v_template.device
+        full_pose = full_pose.to(dtype).reshape(full_pose.shape[0], NUM_JOINTS, 3)
+        batch = full_pose.shape[0]
+        coeffs = torch.zeros(batch, self.shapedirs.shape[2], dtype=dtype, device=device)
+        if betas is not None:
+            betas = betas.to(dtype).reshape(-1, betas.shape[-1])
+            if betas.shape[-1] > self.num_betas:
+                raise BodyModelError(f"{self.source}: {betas.shape[-1]} betas given, the model has {self.num_betas}")
+            coeffs[:, : betas.shape[-1]] = betas.expand(batch, -1)
+        if expression is not None:
+            expression = expression.to(dtype).reshape(-1, expression.shape[-1])
+            count = min(expression.shape[-1], self.num_expression)
+            coeffs[:, self.num_betas : self.num_betas + count] = expression[:, :count].expand(batch, -1)
+        shaped = self.v_template + torch.einsum("vcs,bs->bvc", self.shapedirs, coeffs)
+        joints_rest = torch.einsum("jv,bvc->bjc", self.j_regressor, shaped)
+
+        rotations = axis_angle_to_matrix(full_pose)  # (B, 55, 3, 3)
+        eye = torch.eye(3, dtype=dtype, device=device)
+        pose_feature = (rotations[:, 1:] - eye).reshape(batch, -1)
+        blended = shaped + (pose_feature @ self.posedirs).reshape(batch, -1, 3)
+
+        # Rigid chain: G_j = G_parent [R_j | J_j - J_parent].
+        rel_joints = joints_rest.clone()
+        rel_joints[:, 1:] = joints_rest[:, 1:] - joints_rest[:, self.parents[1:]]
+        local = torch.zeros(batch, NUM_JOINTS, 4, 4, dtype=dtype, device=device)
+        local[..., :3, :3] = rotations
+        local[..., :3, 3] = rel_joints
+        local[..., 3, 3] = 1
+        chain = [local[:, 0]]
+        for j in range(1, NUM_JOINTS):
+            chain.append(chain[self.parents[j]] @ local[:, j])
+        world = torch.stack(chain, dim=1)
+        posed_joints = world[..., :3, 3]
+        # A_j: same rotation, translation t_j - R_j J_j, so it acts on rest-pose coordinates.
+        transforms = world.clone()
+        transforms[..., :3, 3] = posed_joints - (world[..., :3, :3] @ joints_rest[..., None])[..., 0]
+
+        per_vertex = torch.einsum("vj,bjrc->bvrc", self.weights, transforms)
+        vertices = (per_vertex[..., :3, :3] @ blended[..., None])[..., 0] + per_vertex[..., :3, 3]
+        if transl is not None:
+            offset = transl.to(dtype).reshape(-1, 1, 3)
+            vertices = vertices + offset
+            posed_joints = posed_joints + offset
+        return BodyOutput(vertices=vertices, joints=posed_joints, transforms=transforms, shaped_vertices=shaped)

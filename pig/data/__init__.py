@@ -1,0 +1,1 @@
+"""Capture formats (THuman4, DNA-Rendering), the synthetic capture and the preprocessed capture."""

@@ -1,0 +1,1 @@
+"""Canonical multi-resolution latent grid and its Laplacian preconditioners."""
