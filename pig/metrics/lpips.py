@@ -1,0 +1,121 @@
+"""LPIPS perceptual distance (Zhang et al. 2018, v0.1) with the AlexNet or VGG16 backbone.
+
+The evaluation's LPIPS column (Section 4.2) and the LPIPS term of the loss (Eq. 15). The backbone
+is rebuilt in plain torch with torchvision's layer layout, so torchvision's checkpoint
+(`alexnet-owt-7be5be79.pth` / `vgg16-397923af.pth`) and the lpips package's linear layers
+(`alex.pth` / `vgg.pth`) load by their original keys.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+
+from pig.metrics.weights import (
+    LPIPS_LINEAR_FILES,
+    TORCHVISION_FILES,
+    WeightsMissing,
+    load_state_dict,
+    locate,
+    lpips_package_weights,
+)
+
+__all__ = ["LPIPS", "WeightsMissing", "backbone_features"]
+
+# Input normalisation of the lpips package's ScalingLayer (for inputs in [-1, 1]).
+SHIFT = (-0.030, -0.088, -0.188)
+SCALE = (0.458, 0.448, 0.450)
+# Indices into `features` after which LPIPS taps the activations (after each ReLU it compares).
+TAPS = {"alex": (1, 4, 7, 9, 11), "vgg": (3, 8, 15, 22, 29)}
+CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}
+
+
+def backbone_features(net: str) -> nn.Sequential:
+    """torchvision's `alexnet().features` / `vgg16().features` layer stack (same indices, untrained)."""
+    if net == "alex":
+        return nn.Sequential(
+            nn.Conv2d(3, 64, 11, stride=4, padding=2), nn.ReLU(),
+            nn.MaxPool2d(3, stride=2),
+            nn.Conv2d(64, 192, 5, padding=2), nn.ReLU(),
+            nn.MaxPool2d(3, stride=2),
+            nn.Conv2d(192, 384, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(384, 256, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(),
+            nn.MaxPool2d(3, stride=2),
+        )
+    if net == "vgg":
+        layers: list[nn.Module] = []
+        channels = 3
+        for width in (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"):
+            if width == "M":
+                layers.append(nn.MaxPool2d(2, stride=2))
+            else:
+                layers += [nn.Conv2d(channels, width, 3, padding=1), nn.ReLU()]
+                channels = width
+        return nn.Sequential(*layers)
+    raise ValueError(f"LPIPS backbone must be 'alex' or 'vgg', found {net!r}")
+
+
+class LPIPS(nn.Module):
+    """Frozen LPIPS network; `forward(x, y)` on (B, 3, H, W) images in [0, 1] -> (B,) distances.
+
+    Differentiable w.r.t. the images. Raises `WeightsMissing` when either weight file is absent;
+    `backbone_weights` / `linear_weights` name the files directly, otherwise they are looked up
+    in the torch hub cache (and the lpips package folder for the linear layers).
+    """
+
+    def __init__(self, net: str = "alex", backbone_weights: str | Path | None = None, linear_weights: str | Path | None = None):
+        super().__init__()
+        self.net = net
+        self.features = backbone_features(net)
+        self.taps = TAPS[net]
+        self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in CHANNELS[net])
+        self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
+
+        backbone_path = locate(TORCHVISION_FILES[net], backbone_weights, [], f"LPIPS {net} backbone")
+        linear_path = locate(LPIPS_LINEAR_FILES[net], linear_weights, [lpips_package_weights()], f"LPIPS {net} linear layers")
+        self._load_backbone(backbone_path)
+        self._load_linear(linear_path)
+        self.requires_grad_(False)
+        self.eval()
+
+    def _load_backbone(self, path: Path) -> None:
+        state = load_state_dict(path)
+        wanted = {k: v for k, v in state.items() if k.startswith("features.")}
+        expected = {f"features.{k}" for k in self.features.state_dict()}
+        if set(wanted) != expected:
+            raise WeightsMissing(f"{path}: expected torchvision {self.net} keys {sorted(expected)}, found {sorted(wanted)}")
+        self.features.load_state_dict({k.removeprefix("features."): v for k, v in wanted.items()})
+
+    def _load_linear(self, path: Path) -> None:
+        state = load_state_dict(path)
+        # The lpips package names its 1x1 convolutions lin{k}.model.1.weight (after a Dropout).
+        expected = {f"lin{k}.model.1.weight" for k in range(len(self.lins))}
+        if not expected <= set(state):
+            raise WeightsMissing(f"{path}: expected lpips linear-layer keys {sorted(expected)}, found {sorted(state)}")
+        for k, lin in enumerate(self.lins):
+            lin.weight.data.copy_(state[f"lin{k}.model.1.weight"])
+
+    def _activations(self, images: torch.Tensor) -> list[torch.Tensor]:
+        h = ((2 * images - 1) - self.shift) / self.scale
+        taps = []
+        for index, layer in enumerate(self.features):
+            h = layer(h)
+            if index in self.taps:
+                taps.append(h)
+                if len(taps) == len(self.taps):
+                    break
+        return taps
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        if x.shape != y.shape or x.dim() != 4 or x.shape[1] != 3:
+            raise ValueError(f"LPIPS expects two (B, 3, H, W) tensors of one shape, found {tuple(x.shape)} and {tuple(y.shape)}")
+        total = x.new_zeros(x.shape[0])
+        for fx, fy, lin in zip(self._activations(x), self._activations(y), self.lins):
+            # Unit-normalise along channels (eps as the lpips package), weight the squared difference, average spatially.
+            nx = fx / (fx.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+            total = total + lin((nx - ny).pow(2)).mean(dim=(1, 2, 3))
+        return total

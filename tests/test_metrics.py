@@ -1,0 +1,183 @@
+"""Metrics against independent references: closed forms, scikit-image, and hand-built twin networks."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from skimage.metrics import structural_similarity
+
+from pig.metrics.fid import InceptionFeatures, fid_from_features, frechet_distance
+from pig.metrics.lpips import LPIPS, WeightsMissing, backbone_features
+from pig.metrics.psnr import psnr
+from pig.metrics.ssim import ssim
+
+
+@pytest.fixture
+def empty_hub(tmp_path, monkeypatch):
+    """An empty torch hub cache, so no real weights on this machine leak into the tests."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))
+    monkeypatch.setattr("pig.metrics.weights.lpips_package_weights", lambda: None)
+    return tmp_path / "torch_home" / "hub" / "checkpoints"
+
+
+def test_psnr_closed_form(rng):
+    x = torch.from_numpy(rng.random((3, 3, 8, 9)))
+    noise = torch.from_numpy(rng.choice([-1.0, 1.0], size=x.shape)) * 0.05
+    # +-0.05 everywhere: MSE is exactly 0.0025, PSNR = 10 log10(R^2 / 0.0025).
+    for data_range in (1.0, 255.0):
+        expected = 10 * math.log10(data_range**2 / 0.0025)
+        torch.testing.assert_close(psnr(x, x + noise, data_range), torch.full((3,), expected, dtype=torch.float64))
+    assert torch.isinf(psnr(x, x)).all()
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 32, 40), (1, 3, 11, 11), (1, 3, 17, 64)])
+@pytest.mark.parametrize("data_range", [1.0, 255.0])
+def test_ssim_matches_scikit_image(rng, shape, data_range):
+    x = rng.random(shape) * data_range
+    y = np.clip(x + rng.normal(0, 0.2 * data_range, shape), 0, data_range)
+    ours = ssim(torch.from_numpy(x), torch.from_numpy(y), data_range, reduction="none")
+    for b in range(shape[0]):
+        reference = structural_similarity(
+            x[b], y[b], gaussian_weights=True, sigma=1.5, use_sample_covariance=False, channel_axis=0, data_range=data_range
+        )
+        assert ours[b].item() == pytest.approx(reference, abs=1e-10)
+
+
+def test_ssim_extremes_and_gradient(rng):
+    x = torch.from_numpy(rng.random((1, 3, 24, 24)))
+    assert ssim(x, x).item() == pytest.approx(1.0, abs=1e-12)
+    # A constant image against itself (zero variance) is still 1, thanks to C1 and C2.
+    flat = torch.full((1, 3, 16, 16), 0.3, dtype=torch.float64)
+    assert ssim(flat, flat).item() == pytest.approx(1.0, abs=1e-12)
+    # Black against white: luminance term (C1) / (1 + C1) with zero variances.
+    c1 = 0.01**2
+    black, white = torch.zeros(1, 3, 16, 16, dtype=torch.float64), torch.ones(1, 3, 16, 16, dtype=torch.float64)
+    assert ssim(black, white).item() == pytest.approx(c1 / (1 + c1), rel=1e-12)
+    y = torch.from_numpy(rng.random((1, 3, 16, 16))).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: ssim(x[..., :16, :16], t), (y,))
+
+
+def test_ssim_rejects_small_images():
+    with pytest.raises(ValueError, match="at least 11"):
+        ssim(torch.zeros(1, 3, 10, 30), torch.zeros(1, 3, 10, 30))
+
+
+def test_frechet_distance_closed_form(rng):
+    d = 5
+    a = rng.normal(size=(d, d))
+    b = rng.normal(size=(d, d))
+    s1, s2 = a @ a.T + np.eye(d), b @ b.T + 0.1 * np.eye(d)
+    mu1, mu2 = rng.normal(size=d), rng.normal(size=d)
+    # Independent reference: trace of the principal square root by scipy, float64.
+    from scipy.linalg import sqrtm
+
+    expected = np.sum((mu1 - mu2) ** 2) + np.trace(s1 + s2 - 2 * np.real(sqrtm(s1 @ s2)))
+    assert frechet_distance(mu1, s1, mu2, s2) == pytest.approx(expected, rel=1e-10)
+    # Commuting diagonal covariances: sum (sqrt(s1_i) - sqrt(s2_i))^2 exactly.
+    v1, v2 = rng.random(d) + 0.5, rng.random(d) + 0.5
+    expected = np.sum((mu1 - mu2) ** 2) + np.sum((np.sqrt(v1) - np.sqrt(v2)) ** 2)
+    assert frechet_distance(mu1, np.diag(v1), mu2, np.diag(v2)) == pytest.approx(expected, rel=1e-12)
+
+
+def test_frechet_distance_singular_covariances(rng):
+    # Rank-1 covariances along orthogonal axes: tr sqrt(S1 S2) = 0; along the same axis: sqrt(v1 v2).
+    e0, e1 = np.eye(3)[0], np.eye(3)[1]
+    zero = np.zeros(3)
+    assert frechet_distance(zero, 4 * np.outer(e0, e0), zero, 9 * np.outer(e1, e1)) == pytest.approx(13.0, abs=1e-9)
+    assert frechet_distance(zero, 4 * np.outer(e0, e0), zero, 9 * np.outer(e0, e0)) == pytest.approx(1.0, abs=1e-9)
+    # Few samples in many dimensions (rank-deficient, as FID on a small test set): finite and ~0 for a set against itself.
+    features = rng.normal(size=(10, 64))
+    value, reason = fid_from_features(features, features, min_images=5)
+    assert reason == "" and abs(value) < 1e-8
+    value, reason = fid_from_features(features, features, min_images=2000)
+    assert math.isnan(value) and "2000" in reason
+
+
+def _reference_alex_lpips(backbone: dict, linear: dict, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """LPIPS written out layer by layer from the two state_dicts, independently of pig.metrics.lpips."""
+    shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
+    scale = torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1)
+
+    def taps(img):
+        h = ((img * 2 - 1) - shift) / scale
+        h = F.relu(F.conv2d(h, backbone["features.0.weight"], backbone["features.0.bias"], stride=4, padding=2))
+        out = [h]
+        h = F.relu(F.conv2d(F.max_pool2d(h, 3, 2), backbone["features.3.weight"], backbone["features.3.bias"], padding=2))
+        out.append(h)
+        h = F.relu(F.conv2d(F.max_pool2d(h, 3, 2), backbone["features.6.weight"], backbone["features.6.bias"], padding=1))
+        out.append(h)
+        h = F.relu(F.conv2d(h, backbone["features.8.weight"], backbone["features.8.bias"], padding=1))
+        out.append(h)
+        h = F.relu(F.conv2d(h, backbone["features.10.weight"], backbone["features.10.bias"], padding=1))
+        out.append(h)
+        return out
+
+    total = 0
+    for k, (a, b) in enumerate(zip(taps(x), taps(y))):
+        a = a / (a.norm(dim=1, keepdim=True) + 1e-10)
+        b = b / (b.norm(dim=1, keepdim=True) + 1e-10)
+        total = total + F.conv2d((a - b) ** 2, linear[f"lin{k}.model.1.weight"]).mean(dim=(1, 2, 3))
+    return total
+
+
+def test_lpips_loads_torchvision_and_lpips_files(tmp_path, empty_hub):
+    torch.manual_seed(0)
+    # A torchvision-format checkpoint (features.* plus classifier keys, which LPIPS ignores).
+    backbone = {f"features.{k}": v for k, v in backbone_features("alex").state_dict().items()}
+    backbone["classifier.1.weight"] = torch.randn(4, 9216)
+    linear = {f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate((64, 192, 384, 256, 256))}
+    empty_hub.mkdir(parents=True)
+    torch.save(backbone, empty_hub / "alexnet-owt-7be5be79.pth")
+    linear_path = tmp_path / "alex.pth"
+    torch.save(linear, linear_path)
+
+    metric = LPIPS("alex", linear_weights=linear_path)
+    x, y = torch.rand(2, 3, 64, 72), torch.rand(2, 3, 64, 72)
+    torch.testing.assert_close(metric(x, y), _reference_alex_lpips(backbone, linear, x, y))
+    torch.testing.assert_close(metric(x, x), torch.zeros(2))
+    # Differentiable w.r.t. the images, frozen itself.
+    y.requires_grad_()
+    metric(x, y).sum().backward()
+    assert y.grad.abs().sum() > 0 and all(p.grad is None for p in metric.parameters())
+
+
+def test_lpips_missing_weights_name_the_file(tmp_path, empty_hub):
+    with pytest.raises(WeightsMissing, match="alexnet-owt-7be5be79.pth"):
+        LPIPS("alex")
+    with pytest.raises(WeightsMissing, match="does not exist"):
+        LPIPS("alex", backbone_weights=tmp_path / "nowhere.pth")
+    bad = tmp_path / "bad.pth"
+    torch.save({"something": torch.zeros(1)}, bad)
+    with pytest.raises(WeightsMissing, match="expected torchvision alex keys"):
+        LPIPS("alex", backbone_weights=bad, linear_weights=bad)
+
+
+class _TinyInception(torch.nn.Module):
+    """Stand-in with the real network's call signature: forward(x in [0, 255], return_features)."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(3, 8, 5, stride=4)
+
+    def forward(self, x: torch.Tensor, return_features: bool = False) -> torch.Tensor:
+        features = self.conv(x / 255).relu().mean(dim=(2, 3))
+        return features if return_features else features.sum(1, keepdim=True)
+
+
+def test_inception_features_load_torchscript(tmp_path, empty_hub):
+    torch.manual_seed(0)
+    tiny = _TinyInception()
+    path = tmp_path / "inception-2015-12-05.pt"
+    torch.jit.script(tiny).save(str(path))
+    extractor = InceptionFeatures(path)
+    images = torch.rand(3, 3, 299, 299)
+    torch.testing.assert_close(extractor(images), tiny(images * 255, return_features=True))
+    # Other sizes are resized to 299 first.
+    small = torch.rand(2, 3, 64, 48)
+    resized = F.interpolate(small, size=(299, 299), mode="bilinear", antialias=True, align_corners=False)
+    torch.testing.assert_close(extractor(small), tiny(resized.clamp(0, 1) * 255, return_features=True))
+    with pytest.raises(WeightsMissing, match="inception-2015-12-05.pt"):
+        InceptionFeatures(tmp_path / "absent.pt")
