@@ -1,0 +1,40 @@
+"""Configuration of the avatar model (profile section `avatar`): anchors, levels, field and decoder sizes.
+
+Defaults are the paper's (Section 3.6); the `cpu-demo` and `test` profiles shrink them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class AvatarConfig:
+    num_anchors: int = 100_000
+    levels: int = 4  # nested LOD subsets by halving
+    anchor_seed: int = 0
+    sh_degree: int = 3
+    grid_resolutions: list[int] = field(default_factory=lambda: [8, 24, 40, 56, 72, 88])
+    grid_features: int = 16
+    grid_margin: float = 0.1  # fraction of the anchors' bounding-box extent added on each side
+    hidden_layers: int = 5  # colour and shape decoders
+    hidden_width: int = 512
+    single_mlp: bool = False  # ablation: one MLP decodes colour and shape together
+    offsets: bool = True  # ablation `no_offsets`: no per-timestep position residual (Eq. 10)
+    learn_anchors: bool = True  # ablation `fixed_anchors`: canonical anchors stay at x_init
+    refine_hidden_layers: int = 3  # body refinement MLP (Eqs. 12-14)
+    refine_hidden_width: int = 32
+    refine_shape: bool = True
+    refine_body: bool = True  # global orientation and the 21 body joints
+    refine_face: bool = True  # jaw and eyes
+    refine_hands: bool = True
+    init_opacity: float = 0.5
+    # Scales are exp(output) times this multiple of the mean anchor spacing of the level.
+    scale_prior: float = 1.0
+    offset_scale: float = 0.05  # metres per unit of the raw offset output
+    output_init_gain: float = 0.01  # last decoder layers start small, so the avatar starts at the prior
+
+    def __post_init__(self):
+        if self.sh_degree not in (0, 1, 2, 3):
+            raise ValueError(f"avatar.sh_degree must be 0..3, got {self.sh_degree}")
+        if self.levels < 1 or self.num_anchors < 2 ** (self.levels - 1):
+            raise ValueError(f"avatar: {self.num_anchors} anchors cannot form {self.levels} nested levels")

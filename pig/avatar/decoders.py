@@ -1,0 +1,80 @@
+"""Anchor decoders: colour MLP to spherical harmonics and shape MLP to offset, rotation, scale, opacity.
+
+Implements Eqs. 8-9 (Psi_color, Psi_shape on y = [z, gamma(t), l~]) with the output parameterisations
+of Section 3.4: unit quaternion residual, log-space scale, opacity in (0, 1).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+SHAPE_OUTPUTS = 3 + 4 + 3 + 1  # offset, rotation residual, log-scale, opacity logit
+LOG_SCALE_MIN, LOG_SCALE_MAX = -15.0, 3.0  # 0.3 micrometres .. 20 metres
+
+
+def mlp(inputs: int, width: int, layers: int, outputs: int, output_gain: float) -> nn.Sequential:
+    """`layers` hidden ReLU layers of `width`; the last linear layer is scaled by `output_gain`."""
+    modules: list[nn.Module] = []
+    size = inputs
+    for _ in range(layers):
+        modules += [nn.Linear(size, width), nn.ReLU()]
+        size = width
+    last = nn.Linear(size, outputs)
+    with torch.no_grad():
+        last.weight.mul_(output_gain)
+        last.bias.zero_()
+    modules.append(last)
+    return nn.Sequential(*modules)
+
+
+@dataclass
+class DecodedAnchors:
+    offset: torch.Tensor  # (..., 3) position residual in posed space (Eq. 10)
+    rotation: torch.Tensor  # (..., 4) unit quaternion residual, wxyz (Eq. 11)
+    scale: torch.Tensor  # (..., 3) positive
+    opacity: torch.Tensor  # (...,) in (0, 1)
+    sh: torch.Tensor  # (..., K, 3)
+
+
+class AnchorDecoder(nn.Module):
+    """Psi_color and Psi_shape (or one shared MLP for the `single_mlp` ablation)."""
+
+    def __init__(self, inputs: int, width: int, layers: int, sh_degree: int, *, single_mlp: bool = False,
+                 offsets: bool = True, init_opacity: float = 0.5, offset_scale: float = 0.05, output_gain: float = 0.01):
+        super().__init__()
+        if not 0 < init_opacity < 1:
+            raise ValueError(f"init_opacity must lie in (0, 1), got {init_opacity}")
+        self.sh_coeffs = (sh_degree + 1) ** 2
+        self.offsets = offsets
+        self.offset_scale = offset_scale
+        self.opacity_bias = math.log(init_opacity / (1 - init_opacity))
+        colour_outputs = 3 * self.sh_coeffs
+        if single_mlp:
+            self.shared = mlp(inputs, width, layers, SHAPE_OUTPUTS + colour_outputs, output_gain)
+            self.shape = self.colour = None
+        else:
+            self.shared = None
+            self.shape = mlp(inputs, width, layers, SHAPE_OUTPUTS, output_gain)
+            self.colour = mlp(inputs, width, layers, colour_outputs, output_gain)
+
+    def forward(self, y: torch.Tensor, log_scale_prior: float | torch.Tensor = 0.0) -> DecodedAnchors:
+        """y (..., inputs) -> decoded attributes; scale = exp(output + log_scale_prior)."""
+        if self.shared is not None:
+            out = self.shared(y)
+            shape, colour = out[..., :SHAPE_OUTPUTS], out[..., SHAPE_OUTPUTS:]
+        else:
+            shape, colour = self.shape(y), self.colour(y)
+        offset = shape[..., 0:3] * self.offset_scale
+        if not self.offsets:
+            offset = torch.zeros_like(offset)
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=shape.dtype, device=shape.device)
+        quat = shape[..., 3:7] + identity  # residual around the identity rotation
+        quat = quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        # Bounded log-scale: a diverging output must not make a splat vanish (0) or cover everything (inf).
+        scale = torch.exp((shape[..., 7:10] + log_scale_prior).clamp(LOG_SCALE_MIN, LOG_SCALE_MAX))
+        opacity = torch.sigmoid(shape[..., 10] + self.opacity_bias)
+        sh = colour.reshape(colour.shape[:-1] + (self.sh_coeffs, 3))
+        return DecodedAnchors(offset=offset, rotation=quat, scale=scale, opacity=opacity, sh=sh)
