@@ -1,0 +1,44 @@
+"""OpenEXR read/write of float32 per-pixel channels (render alpha and expected depth), written atomically.
+
+Storage only; uses the `OpenEXR` 3.x API (`OpenEXR.File`), ZIP-compressed scanlines, full float precision.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+
+def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
+    """Write named (H, W) channels as 32-bit float to `path` via a temporary file and a rename."""
+    path = Path(path)
+    if not channels:
+        raise ValueError(f"{path}: no channels to write")
+    shapes = {name: np.shape(values) for name, values in channels.items()}
+    if len(set(shapes.values())) != 1 or len(next(iter(shapes.values()))) != 2:
+        raise ValueError(f"{path}: expected 2-D (H, W) channels of one shape, found {shapes}")
+    data = {name: np.ascontiguousarray(values, dtype=np.float32) for name, values in channels.items()}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.exr")
+    try:
+        with OpenEXR.File(header, data) as handle:
+            handle.write(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_exr(path: str | Path) -> dict[str, np.ndarray]:
+    """All channels of an EXR file as (H, W) float32 arrays keyed by channel name."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: EXR file not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as handle:
+            channels = handle.channels()
+            return {name: np.asarray(channel.pixels, dtype=np.float32) for name, channel in channels.items()}
+    except RuntimeError as err:
+        raise ValueError(f"{path}: not a readable OpenEXR file ({err})") from None

@@ -1,0 +1,54 @@
+"""Atomic file writing for the render / evaluate / tables stages: write a temporary name, then rename.
+
+A killed stage never leaves a half-written PNG, CSV or JSON under its final name.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+
+def _temporary(path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+
+
+def write_text(path: str | Path, text: str) -> None:
+    path = Path(path)
+    tmp = _temporary(path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_json(path: str | Path, data: Any) -> None:
+    write_text(path, json.dumps(data, indent=2, allow_nan=True) + "\n")
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """(H, W, 3) RGB float in [0, 1] or uint8 -> 8-bit PNG."""
+    path = Path(path)
+    if image.dtype != np.uint8:
+        image = np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
+    tmp = _temporary(path)
+    try:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(image[..., ::-1])):
+            raise OSError(f"{path}: OpenCV could not write the PNG")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_png(path: str | Path) -> np.ndarray:
+    """8-bit RGB PNG -> (H, W, 3) float32 in [0, 1]."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise FileNotFoundError(f"{path}: missing or not a readable image (expected an RGB PNG written by the render stage)")
+    return image[..., ::-1].astype(np.float32) / 255

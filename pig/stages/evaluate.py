@@ -1,0 +1,155 @@
+"""Evaluate stage: per-image PSNR, SSIM, LPIPS and per-set FID of one split's renders at every LOD.
+
+Follows the paper's protocol (Section 4.2): full frame, black background, ground truth masked to
+black. Writes metrics/{split}_lod{l}.csv (per image) and metrics/{split}_lod{l}.json (summary).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm import tqdm
+
+from pig.config import load_profile, load_section
+from pig.metrics.fid import DEFAULT_MIN_IMAGES, InceptionFeatures, fid_from_features
+from pig.metrics.lpips import LPIPS
+from pig.metrics.psnr import psnr
+from pig.metrics.ssim import ssim
+from pig.metrics.weights import WeightsMissing
+from pig.stages._io import read_png, write_json, write_text
+
+
+@dataclass
+class EvaluateConfig:
+    """Profile section `evaluate` (read by the render, evaluate and tables stages)."""
+
+    lpips_net: Literal["alex", "vgg"] = "alex"
+    lpips_backbone_weights: str | None = None  # torchvision checkpoint; None: torch hub cache
+    lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
+    inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: hub cache or /tmp
+    fid_min_images: int = DEFAULT_MIN_IMAGES
+    batch_size: int = 8
+    device: str = "auto"  # "auto": CUDA when available
+    render_backend: Literal["auto", "gsplat", "cpu"] = "auto"
+    timing_frames: int = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def render_levels(split_dir: Path) -> list[int]:
+    """LOD indices rendered under renders/{split}/ (folders lod0, lod1, ...)."""
+    levels = sorted(int(m.group(1)) for p in split_dir.glob("lod*") if (m := re.fullmatch(r"lod(\d+)", p.name)))
+    if not levels:
+        raise FileNotFoundError(f"{split_dir}: no lod*/ folders; expected the render stage's output for one split")
+    return levels
+
+
+def _load_metric(build, what: str) -> tuple[torch.nn.Module | None, str]:
+    try:
+        return build(), ""
+    except WeightsMissing as err:
+        print(f"[evaluate] {what} is NaN: {err}")
+        return None, f"{what} weights missing"
+
+
+def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lpips_net, inception, device):
+    """Per-image metrics (DataFrame), summary (dict) and Inception features (render, truth) of one split at one LOD."""
+    cameras, frames = capture.split[split]["cameras"], capture.split[split]["frames"]
+    pairs = [(c, f) for f in frames for c in cameras]
+    rows, fake_features, real_features = [], [], []
+    for start in tqdm(range(0, len(pairs), cfg.batch_size), desc=f"evaluate {split} {level_dir.name}", unit="batch"):
+        batch = pairs[start:start + cfg.batch_size]
+        renders = np.stack([read_png(level_dir / cam / f"{frame:08d}.png") for cam, frame in batch])
+        truths = np.stack([capture.image(cam, frame) * capture.mask(cam, frame)[..., None] for cam, frame in batch])
+        if renders.shape != truths.shape:
+            raise ValueError(f"{level_dir}: renders are {renders.shape[1:3]} but the capture's images are {truths.shape[1:3]}")
+        x = torch.from_numpy(renders).permute(0, 3, 1, 2).to(device)
+        y = torch.from_numpy(np.ascontiguousarray(truths, dtype=np.float32)).permute(0, 3, 1, 2).to(device)
+        blank = torch.zeros_like(y)
+        with torch.no_grad():
+            values = {
+                "psnr": psnr(x, y),
+                "ssim": ssim(x, y, reduction="none"),
+                "lpips": lpips_net(x, y) if lpips_net is not None else torch.full((len(batch),), math.nan),
+                "psnr_blank": psnr(blank, y),
+                "ssim_blank": ssim(blank, y, reduction="none"),
+            }
+            if inception is not None:
+                fake_features.append(inception(x).double().cpu().numpy())
+                real_features.append(inception(y).double().cpu().numpy())
+        for i, (cam, frame) in enumerate(batch):
+            rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
+    table = pd.DataFrame(rows)
+    summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
+    summary["images"] = len(table)
+    return table, summary, fake_features, real_features
+
+
+def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig) -> list[Path]:
+    """Evaluate every LOD rendered under `split_dir`; returns the CSV paths written."""
+    from pig.data.capture import Capture
+
+    capture = Capture.load(capture_dir)
+    if split not in capture.split:
+        raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
+    device = resolve_device(cfg.device)
+    images = len(capture.split[split]["cameras"]) * len(capture.split[split]["frames"])
+    lpips_net, lpips_note = _load_metric(
+        lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights).to(device), "LPIPS")
+    if images < cfg.fid_min_images:
+        # Not worth loading Inception: the set is too small for a meaningful FID anyway.
+        inception, fid_note = None, f"FID needs >= {cfg.fid_min_images} images per set, have {images}"
+        print(f"[evaluate] FID is NaN: {fid_note}")
+    else:
+        inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
+    written = []
+    for level in render_levels(split_dir):
+        level_dir = split_dir / f"lod{level}"
+        table, summary, fake, real = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device)
+        fid, note = math.nan, fid_note
+        if inception is not None:
+            fid, note = fid_from_features(np.concatenate(fake), np.concatenate(real), cfg.fid_min_images)
+        timing = _read_json(level_dir / "timing.json")
+        summary.update(split=split, lod=level, fid=fid, lpips_note=lpips_note, fid_note=note, **timing)
+        csv_path = output_dir / f"{split}_lod{level}.csv"
+        write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
+        write_json(output_dir / f"{split}_lod{level}.json", summary)
+        written.append(csv_path)
+        print(f"[evaluate] {split} lod{level}: PSNR {summary['psnr']:.2f} SSIM {summary['ssim']:.4f} "
+              f"(blank {summary['psnr_blank']:.2f} / {summary['ssim_blank']:.4f}) over {summary['images']} images")
+    return written
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing; expected the render stage's timing record (splats, model_mb, fps, device)")
+    return json.loads(path.read_text())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pig.stages.evaluate", description=__doc__.splitlines()[0])
+    parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory")
+    parser.add_argument("--renders", type=Path, required=True, help="renders/{split} directory of the render stage")
+    parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"])
+    parser.add_argument("--output", type=Path, required=True, help="metrics directory ({split}_lod{l}.csv/.json go here)")
+    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
+    args = parser.parse_args(argv)
+    cfg = load_section(load_profile(args.profile), "evaluate", EvaluateConfig)
+    evaluate_split(args.capture, args.renders, args.split, args.output, cfg)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

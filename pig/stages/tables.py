@@ -1,0 +1,169 @@
+"""Tables stage: the paper's result tables from the evaluate stage's summaries, as CSV and Markdown, plus a plot.
+
+Layouts of Section 4: Tables 1-2 (variants x novel-view / novel-pose PSNR, SSIM, LPIPS, FID, splats),
+the LOD table (splats, metrics, model MB, FPS per level), and held-out PSNR against training time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from pig.stages._io import write_text  # noqa: E402
+
+SPLITS = ("novel_view", "novel_pose")
+METRICS = ("psnr", "ssim", "lpips", "fid")
+BLANK_ROW = "blank (black image)"
+
+
+def read_summaries(paths: list[Path]) -> pd.DataFrame:
+    """One row per summary file results/{dataset}/{subject}/{variant}/metrics/{split}_lod{l}.json."""
+    rows = []
+    for path in paths:
+        path = Path(path)
+        if path.parent.name != "metrics" or len(path.parts) < 4:
+            raise ValueError(f"{path}: expected a summary at .../{{subject}}/{{variant}}/metrics/{{split}}_lod{{l}}.json")
+        try:
+            summary = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise ValueError(f"{path}: not a readable evaluate summary ({err})") from None
+        missing = {"split", "lod", "splats", *METRICS} - set(summary)
+        if missing:
+            raise ValueError(f"{path}: summary lacks keys {sorted(missing)}")
+        rows.append({"subject": path.parts[-4], "variant": path.parts[-3], **summary})
+    if not rows:
+        raise ValueError("no evaluate summaries given")
+    return pd.DataFrame(rows)
+
+
+def _notes(frame: pd.DataFrame) -> str:
+    notes = sorted({n for col in ("lpips_note", "fid_note") if col in frame for n in frame[col].dropna() if n})
+    return "; ".join(notes)
+
+
+def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
+    """Tables 1-2: per variant (finest LOD, mean over subjects) novel-view and novel-pose metrics and splats."""
+    finest = summaries[summaries["lod"] == summaries.groupby("variant")["lod"].transform("max")]
+    rows = []
+    for variant in variants:
+        part = finest[finest["variant"] == variant]
+        if part.empty:
+            raise ValueError(f"no summaries for variant {variant!r}; found {sorted(summaries['variant'].unique())}")
+        row = {"variant": variant}
+        for split in SPLITS:
+            rows_split = part[part["split"] == split]
+            for metric in METRICS:
+                row[f"{split}_{metric}"] = rows_split[metric].mean() if not rows_split.empty else math.nan
+        row["splats"] = int(part["splats"].max())
+        row["notes"] = _notes(part)
+        rows.append(row)
+    # A black image scored against the masked ground truth: the floor every method must clear.
+    blank = {"variant": BLANK_ROW}
+    for split in SPLITS:
+        rows_split = finest[finest["split"] == split]
+        blank.update({f"{split}_psnr": rows_split["psnr_blank"].mean(), f"{split}_ssim": rows_split["ssim_blank"].mean(),
+                      f"{split}_lpips": math.nan, f"{split}_fid": math.nan})
+    blank.update(splats=0, notes="reference: all-black render")
+    rows.append(blank)
+    return pd.DataFrame(rows)
+
+
+def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_view") -> pd.DataFrame:
+    """The LOD table: per variant and level, splats, metrics, model MB and FPS (mean over subjects)."""
+    rows = []
+    for variant in variants:
+        part = summaries[(summaries["variant"] == variant) & (summaries["split"] == split)]
+        levels = sorted(part["lod"].unique())
+        for level in levels:
+            at = part[part["lod"] == level]
+            rows.append({
+                "variant": variant,
+                "lod": f"{level + 1}/{len(levels)}",
+                "splats": int(at["splats"].max()),
+                **{metric: at[metric].mean() for metric in METRICS},
+                "mb": at["model_mb"].mean(),
+                "fps": at["fps"].mean(),
+                "device": "; ".join(sorted(at["device"].unique())),
+                "notes": _notes(at),
+            })
+    return pd.DataFrame(rows)
+
+
+def to_markdown(table: pd.DataFrame, title: str) -> str:
+    """A GitHub Markdown table; NaN prints as 'n/a' and the notes column becomes footnotes."""
+    notes = sorted({n for cell in table.get("notes", []) for n in str(cell).split("; ") if n})
+    shown = table.drop(columns=["notes"], errors="ignore")
+
+    def cell(value) -> str:
+        if isinstance(value, float):
+            if math.isnan(value):
+                return "n/a"
+            return f"{value:.3f}" if abs(value) < 10 else f"{value:.2f}"
+        return str(value)
+
+    lines = [f"## {title}", "", "| " + " | ".join(shown.columns) + " |", "|" + "---|" * len(shown.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in shown.itertuples(index=False)]
+    if notes:
+        lines += [""] + [f"- n/a: {note}" for note in notes]
+    return "\n".join(lines) + "\n"
+
+
+def training_plot(logs: dict[str, list[Path]], path: Path, title: str) -> None:
+    """Held-out PSNR against training wall time, one line per (variant, subject), from train_log.csv."""
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    for variant, files in logs.items():
+        for file in files:
+            log = pd.read_csv(file)
+            columns = {"wall_s", "heldout_psnr"}
+            if not columns <= set(log.columns):
+                raise ValueError(f"{file}: train log lacks columns {sorted(columns - set(log.columns))}; found {list(log.columns)}")
+            log = log.dropna(subset=["heldout_psnr"])
+            ax.plot(log["wall_s"], log["heldout_psnr"], marker="o", markersize=3, label=f"{variant} ({Path(file).parts[-3]})")
+    ax.set_xlabel("training wall time [s]")
+    ax.set_ylabel("held-out novel-view PSNR [dB]")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], variants: list[str], output: Path) -> None:
+    table = read_summaries(summaries)
+    main = main_table(table, variants)
+    lod = lod_table(table, variants)
+    write_text(output / f"{dataset}.csv", main.to_csv(index=False, float_format="%.6g"))
+    write_text(output / f"{dataset}.md", to_markdown(main, f"{dataset}: novel views and novel poses (finest LOD)"))
+    write_text(output / f"{dataset}_lod.csv", lod.to_csv(index=False, float_format="%.6g"))
+    write_text(output / f"{dataset}_lod.md", to_markdown(lod, f"{dataset}: levels of detail (novel views)"))
+    logs = {v: [p for p in map(Path, train_logs) if p.parent.name == v] for v in variants}
+    training_plot(logs, output / f"{dataset}_training.png", f"{dataset}: held-out PSNR during training")
+    print(to_markdown(main, dataset))
+    print(to_markdown(lod, f"{dataset} LOD"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pig.stages.tables", description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", required=True)
+    parser.add_argument("--summaries", type=Path, nargs="+", required=True, help="metrics/{split}_lod{l}.json files")
+    parser.add_argument("--train-logs", type=Path, nargs="*", default=[], help="{variant}/train_log.csv files")
+    parser.add_argument("--variants", nargs="+", required=True, help="row order of the tables")
+    parser.add_argument("--output", type=Path, required=True, help="tables directory (results/tables)")
+    args = parser.parse_args(argv)
+    make_tables(args.dataset, args.summaries, args.train_logs, args.variants, args.output)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
