@@ -1,0 +1,358 @@
+"""DNA-Rendering .smc reader and writer: round trips against the source capture, conventions checked
+against independent references (raw HDF5 values, explicit matrix algebra), malformed files."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from pig.body.model import NUM_JOINTS, SMPLX_PARENTS, BodyModel
+from pig.body.params import SmplxParams
+from pig.data.dna import DnaCapture, locate_smc, required_files
+from pig.data.raw import CaptureError, RawCamera
+from pig.data.smc_writer import write_smc
+
+SEQ = "0007_03"
+
+
+def _tiny_body_arrays(rng) -> dict[str, np.ndarray]:
+    """A 165-vertex body in the SMPL-X layout: three vertices per joint, rigidly skinned; nonzero hands_mean."""
+    joints = np.zeros((NUM_JOINTS, 3))
+    for j in range(1, NUM_JOINTS):
+        joints[j] = joints[SMPLX_PARENTS[j]] + rng.normal(0, 0.06, 3)
+    verts = np.repeat(joints, 3, axis=0) + rng.normal(0, 0.02, (3 * NUM_JOINTS, 3))
+    regressor = np.kron(np.eye(NUM_JOINTS), np.full((1, 3), 1 / 3))
+    return {
+        "v_template": verts,
+        "f": np.arange(3 * NUM_JOINTS).reshape(-1, 3),
+        "shapedirs": rng.normal(0, 0.01, (len(verts), 3, 20)),
+        "posedirs": np.zeros((len(verts), 3, (NUM_JOINTS - 1) * 9)),
+        "J_regressor": regressor,
+        "weights": regressor.T.copy(),
+        "kintree_table": np.stack([SMPLX_PARENTS, np.arange(NUM_JOINTS)]),
+        "hands_meanl": rng.normal(0, 0.3, 45),
+        "hands_meanr": rng.normal(0, 0.3, 45),
+    }
+
+
+def _look_at(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera (R, T) of an OpenCV camera at `centre` looking at the origin, image y pointing down."""
+    z = -centre / np.linalg.norm(centre)
+    down = np.array([0.0, -1.0, 0.0])
+    y = down - down @ z * z
+    y /= np.linalg.norm(y)
+    R = np.stack([np.cross(y, z), y, z])
+    return R, -R @ centre
+
+
+def _project(camera: RawCamera, points: np.ndarray) -> np.ndarray:
+    rvec = cv2.Rodrigues(camera.R)[0]
+    pixels = cv2.projectPoints(points.reshape(-1, 1, 3), rvec, camera.T, camera.K, camera.dist)[0]
+    return pixels.reshape(-1, 2)
+
+
+def _posed_vertices(model: BodyModel, params: SmplxParams) -> np.ndarray:
+    out = model(torch.from_numpy(params.full_pose), torch.from_numpy(params.betas),
+                torch.from_numpy(params.expression), torch.from_numpy(params.transl))
+    return out.vertices.numpy()
+
+
+class TinyCapture:
+    """An in-memory RawCapture: noise images, masks = the projected body vertices, one missing frame."""
+
+    def __init__(self, model: BodyModel, rng, width=40, height=30):
+        self.source = Path("<tiny>")
+        self.frames = [10, 11, 13]
+        n = len(self.frames)
+        self.params = SmplxParams(full_pose=rng.normal(0, 0.3, (n, NUM_JOINTS, 3)), betas=rng.normal(0, 1, 10),
+                                  expression=rng.normal(0, 1, (n, 10)), transl=rng.normal(0, 0.05, (n, 3)))
+        self.cameras = {}
+        for i, angle in enumerate(np.linspace(0, 2 * np.pi, 5, endpoint=False)):
+            R, T = _look_at(np.array([3 * np.sin(angle), 0.3 * i - 0.5, 3 * np.cos(angle)]))
+            K = np.array([[25.0 + i, 0.2, width / 2 + 0.3 * i], [0, 26.0 - i, height / 2 - 0.2 * i], [0, 0, 1]])
+            self.cameras[f"cam{i:02d}"] = RawCamera(name=f"cam{i:02d}", K=K, R=R, T=T, width=width, height=height,
+                                                    dist=np.array([0.02, -0.01, 0.001, -0.002, 0.003]) * (i + 1))
+        self.missing = {("cam02", 13)}
+        verts = _posed_vertices(model, self.params)
+        self.images, self.masks = {}, {}
+        for name, cam in self.cameras.items():
+            for index, frame in enumerate(self.frames):
+                self.images[name, frame] = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+                mask = np.zeros((height, width), np.uint8)
+                for u, v in np.round(_project(cam, verts[index])).astype(int):
+                    if 0 <= u < width and 0 <= v < height:
+                        mask[v, u] = 255
+                self.masks[name, frame] = mask
+
+    def has_frame(self, camera, frame):
+        return (camera, frame) not in self.missing
+
+    def read_image(self, camera, frame):
+        return self.images[camera, frame].copy()
+
+    def read_mask(self, camera, frame):
+        return self.masks[camera, frame].copy()
+
+
+@pytest.fixture(scope="module")
+def body_model():
+    return BodyModel(_tiny_body_arrays(np.random.default_rng(1))).to(torch.float64)
+
+
+@pytest.fixture(scope="module")
+def tiny(body_model):
+    return TinyCapture(body_model, np.random.default_rng(2))
+
+
+@pytest.fixture(scope="module")
+def written(tiny, body_model, tmp_path_factory):
+    """The tiny capture as .smc: cams 0..2 in Camera_5mp, 3..4 in Camera_12mp."""
+    out = tmp_path_factory.mktemp("dna")
+    main, annots = write_smc(tiny, out, SEQ, body_model, num_5mp=3)
+    return out, main, annots
+
+
+def _copy(written, tmp_path) -> tuple[Path, Path]:
+    out = tmp_path / "copy"
+    shutil.copytree(written[0], out)
+    return out / f"{SEQ}.smc", out / "annotations" / f"{SEQ}_annots.smc"
+
+
+def test_round_trip_cameras_images_masks_and_poses(tiny, written, body_model):
+    out, main, annots = written
+    assert (main, annots) == (out / f"{SEQ}.smc", out / "annotations" / f"{SEQ}_annots.smc")
+    with DnaCapture(out, SEQ, body_model=body_model) as dna:
+        assert list(dna.cameras) == ["0", "1", "2", "3", "4"]
+        assert dna.frames == [0, 1, 2]
+        for index, (name, source) in enumerate(tiny.cameras.items()):
+            cam = dna.cameras[str(index)]
+            for key in ("K", "R", "T", "dist"):
+                np.testing.assert_allclose(getattr(cam, key), getattr(source, key), atol=1e-6, rtol=0)
+            assert (cam.width, cam.height) == (source.width, source.height)
+            for new, frame in enumerate(tiny.frames):
+                assert dna.has_frame(str(index), new) == tiny.has_frame(name, frame)
+                if tiny.has_frame(name, frame):
+                    np.testing.assert_array_equal(dna.read_image(str(index), new), tiny.read_image(name, frame))
+                    np.testing.assert_array_equal(dna.read_mask(str(index), new), tiny.read_mask(name, frame))
+        params = dna.params
+        np.testing.assert_allclose(params.full_pose, tiny.params.full_pose, atol=1e-12)
+        np.testing.assert_allclose(params.betas, tiny.params.betas, atol=1e-12)
+        np.testing.assert_allclose(params.expression, tiny.params.expression, atol=1e-12)
+        np.testing.assert_allclose(params.transl, tiny.params.transl, atol=1e-12)
+
+
+def test_file_layout_follows_the_dataset_conventions(tiny, written, body_model):
+    """Raw HDF5 values against the documented layout: c2w RT, BGR bytes, flat_hand_mean=False, keys."""
+    _, main_path, annots_path = written
+    with h5py.File(main_path, "r") as main, h5py.File(annots_path, "r") as annots:
+        assert {"actor_id", "performance_id", "age", "gender", "height", "weight"} <= set(main.attrs)
+        assert (main.attrs["actor_id"], main.attrs["performance_id"]) == ("0007", "03")
+        assert sorted(main["Camera_5mp"].keys()) == ["0", "1", "2"]
+        assert sorted(main["Camera_12mp"].keys()) == ["3", "4"]
+        assert main["Camera_12mp"].attrs["num_device"] == 2 and main["Camera_12mp"].attrs["num_frame"] == 3
+        assert sorted(annots["Camera_Parameter"].keys()) == ["00", "01", "02", "03", "04"]
+        assert "2" not in main["Camera_5mp/2/color"] and "2" not in annots["Mask/2/mask"]  # the missing frame
+        source = tiny.cameras["cam04"]
+        centre = -source.R.T @ source.T
+        rt = annots["Camera_Parameter/04/RT"][()]
+        np.testing.assert_allclose(rt[:3, 3], centre, atol=1e-12)  # camera-to-world: translation = centre
+        np.testing.assert_allclose(rt[:3, :3], source.R.T, atol=1e-12)
+        data = main["Camera_12mp/4/color/1"][()]
+        assert data.dtype == np.uint8 and data.ndim == 1
+        np.testing.assert_array_equal(cv2.imdecode(data, cv2.IMREAD_COLOR), tiny.read_image("cam04", 11)[..., ::-1])
+        hands = annots["SMPLx/fullpose"][()][:, 25:]
+        expected = tiny.params.full_pose[:, 25:] - body_model.hands_mean.numpy()[25:]
+        np.testing.assert_allclose(hands, expected, atol=1e-12)
+        np.testing.assert_allclose(annots["SMPLx/fullpose"][()][:, :25], tiny.params.full_pose[:, :25], atol=1e-12)
+
+
+def test_projection_of_the_read_body_lands_on_the_masks(written, body_model):
+    """The posed body from the reader's params, projected with the reader's cameras, hits every mask pixel."""
+    out = written[0]
+    with DnaCapture(out, SEQ, body_model=body_model) as dna:
+        verts = _posed_vertices(body_model, dna.params)
+        hits = 0
+        for name, cam in dna.cameras.items():
+            for frame in dna.frames:
+                if not dna.has_frame(name, frame):
+                    continue
+                mask = dna.read_mask(name, frame)
+                pixels = np.round(_project(cam, verts[frame])).astype(int)
+                inside = (pixels[:, 0] >= 0) & (pixels[:, 0] < cam.width) & (pixels[:, 1] >= 0) & (pixels[:, 1] < cam.height)
+                assert inside.mean() > 0.9
+                assert np.all(mask[pixels[inside, 1], pixels[inside, 0]] == 255)
+                hits += inside.sum()
+        assert hits > 0
+
+
+def test_params_need_the_body_model(written):
+    with DnaCapture(written[0], SEQ) as dna:
+        assert len(dna.cameras) == 5  # cameras and images need no body model
+        with pytest.raises(CaptureError, match="flat_hand_mean=False"):
+            dna.params
+
+
+def test_locates_official_and_flat_layouts(written, tmp_path):
+    out, main, annots = written
+    official = tmp_path / "official"
+    (official / "main").mkdir(parents=True)
+    (official / "annotations").mkdir()
+    shutil.copy(main, official / "main" / main.name)
+    shutil.copy(annots, official / "annotations" / annots.name)
+    assert locate_smc(official, SEQ) == (official / "main" / main.name, official / "annotations" / annots.name)
+    assert locate_smc(official)[0] == official / "main" / main.name  # the only sequence
+    beside = tmp_path / "beside"
+    beside.mkdir()
+    shutil.copy(main, beside / main.name)
+    shutil.copy(annots, beside / annots.name)
+    assert locate_smc(beside / main.name) == (beside / main.name, beside / annots.name)
+    # The workflow passes <root>/<sequence>, which is no folder.
+    assert required_files(out / SEQ) == [main, annots]
+    with pytest.raises(CaptureError, match=r"put .*0165_01\.smc and .*annotations.*0165_01_annots\.smc"):
+        required_files(tmp_path / "nowhere" / "0165_01")
+    (beside / annots.name).unlink()
+    with pytest.raises(CaptureError, match="annotation file not found"):
+        locate_smc(beside / main.name)
+
+
+def _edit(path: Path, action) -> None:
+    with h5py.File(path, "a") as handle:
+        action(handle)
+
+
+@pytest.mark.parametrize("which, action, expected", [
+    ("annots", lambda h: h.__delitem__("Camera_Parameter/01"), r"_annots\.smc:/Camera_Parameter/01: missing group"),
+    ("annots", lambda h: h.__delitem__("SMPLx"), r"_annots\.smc:/SMPLx: missing group"),
+    ("annots", lambda h: h.__delitem__("Camera_Parameter/03/RT"), r"_annots\.smc:/Camera_Parameter/03/RT: missing dataset"),
+    ("main", lambda h: h["Camera_12mp"].attrs.__delitem__("num_frame"),
+     r"0007_03\.smc:/Camera_12mp: missing attribute 'num_frame'"),
+    ("main", lambda h: h["Camera_5mp"].attrs.__delitem__("resolution"),
+     r"0007_03\.smc:/Camera_5mp: missing attribute 'resolution'"),
+    ("main", lambda h: h["Camera_5mp"].attrs.__setitem__("num_frame", 4),
+     r"0007_03\.smc:/Camera_5mp: attribute num_frame = 4 but .*_annots\.smc:/SMPLx/fullpose has 3 frames"),
+    ("main", lambda h: h["Camera_5mp"].attrs.__setitem__("resolution", np.array([30, 41])),
+     r"0007_03\.smc:/Camera_5mp/0/color/0: image is 40x30 \(WxH\) but .*resolution is \[30, 41\]"),
+    ("annots", lambda h: (h.__delitem__("SMPLx/transl"), h.create_dataset("SMPLx/transl", data=np.zeros((2, 3)))),
+     r"_annots\.smc:/SMPLx: 'transl' has shape \(2, 3\), expected \(3, 3\)"),
+    ("annots", lambda h: (h.__delitem__("Camera_Parameter/02/RT"),
+                          h.create_dataset("Camera_Parameter/02/RT", data=np.diag([1.0, 1, -1, 1]))),
+     r"_annots\.smc:/Camera_Parameter/02/RT: expected a rigid 4x4"),
+])
+def test_malformed_files_name_file_and_hdf5_path(written, tmp_path, which, action, expected):
+    main, annots = _copy(written, tmp_path)
+    _edit(main if which == "main" else annots, action)
+    with pytest.raises(CaptureError, match=expected):
+        DnaCapture(main.parent, SEQ)
+
+
+def test_undecodable_image_and_mask_bytes(written, tmp_path):
+    main, annots = _copy(written, tmp_path)
+    junk = np.frombuffer(b"not an image at all", dtype=np.uint8)
+    _edit(main, lambda h: (h.__delitem__("Camera_5mp/1/color/2"), h.create_dataset("Camera_5mp/1/color/2", data=junk)))
+    _edit(annots, lambda h: (h.__delitem__("Mask/3/mask/0"), h.create_dataset("Mask/3/mask/0", data=junk)))
+    with DnaCapture(main.parent, SEQ) as dna:
+        dna.read_image("1", 1)  # neighbours still read
+        with pytest.raises(CaptureError, match=r"0007_03\.smc:/Camera_5mp/1/color/2: image bytes could not be decoded"):
+            dna.read_image("1", 2)
+        with pytest.raises(CaptureError, match=r"_annots\.smc:/Mask/3/mask/0: image bytes could not be decoded"):
+            dna.read_mask("3", 0)
+        with pytest.raises(CaptureError, match=r"0007_03\.smc:/Camera_5mp/2/color/2: missing dataset"):
+            dna.read_image("2", 2)
+
+
+def test_not_an_hdf5_file(written, tmp_path):
+    main, _ = _copy(written, tmp_path)
+    main.write_bytes(b"garbage")
+    with pytest.raises(CaptureError, match=r"0007_03\.smc: not a readable HDF5"):
+        DnaCapture(main.parent, SEQ)
+
+
+def test_resolution_in_either_order_and_padded_or_unpadded_keys(written, tmp_path, tiny):
+    """(W, H) instead of (H, W); masks under zero-padded and calibration under unpadded camera keys."""
+    main, annots = _copy(written, tmp_path)
+    _edit(main, lambda h: h["Camera_5mp"].attrs.__setitem__("resolution", np.array([40, 30])))
+    _edit(annots, lambda h: (h.move("Mask/1", "Mask/01"), h.move("Camera_Parameter/02", "Camera_Parameter/2")))
+    with DnaCapture(main.parent, SEQ) as dna:
+        assert (dna.cameras["0"].width, dna.cameras["0"].height) == (40, 30)
+        np.testing.assert_array_equal(dna.read_mask("1", 0), tiny.read_mask("cam01", 10))
+        np.testing.assert_allclose(dna.cameras["2"].K, tiny.cameras["cam02"].K, atol=1e-12)
+
+
+def test_mask_is_the_maximum_over_channels(written, tmp_path):
+    main, annots = _copy(written, tmp_path)
+    mask = np.zeros((30, 40, 3), np.uint8)
+    mask[3, 4] = (0, 0, 200)
+    mask[5, 6] = (90, 10, 0)
+    data = cv2.imencode(".png", mask)[1].reshape(-1)
+    _edit(annots, lambda h: (h.__delitem__("Mask/0/mask/1"), h.create_dataset("Mask/0/mask/1", data=data)))
+    with DnaCapture(main.parent, SEQ) as dna:
+        got = dna.read_mask("0", 1)
+    expected = np.zeros((30, 40), np.uint8)
+    expected[3, 4], expected[5, 6] = 200, 90
+    np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("stored", [
+    np.array([[0.9, 0.05, 0.0], [0.02, 1.1, 0.01], [0.1, 0.0, 0.8]]),  # 3x3 acting on BGR vectors
+    np.array([0.8, 1.0, 1.2]),  # per-channel gains in BGR order
+])
+def test_color_calibration_acts_on_bgr_pixels(written, tmp_path, tiny, stored):
+    main, annots = _copy(written, tmp_path)
+    for cam in range(5):
+        data = stored if cam == 3 else np.ones_like(stored) if stored.ndim == 1 else np.eye(3)
+        _edit(annots, lambda h: h.create_dataset(f"Camera_Parameter/{cam:02d}/Color_Calibration", data=data))
+    matrix = stored if stored.ndim == 2 else np.diag(stored)
+    bgr = tiny.read_image("cam03", 11)[..., ::-1].astype(np.float64)
+    expected = np.clip(bgr @ matrix.T, 0, 255)[..., ::-1]  # reference in BGR space
+    with DnaCapture(main.parent, SEQ, color_correction=True) as dna:
+        np.testing.assert_allclose(dna.read_image("3", 1), expected, atol=0.5 + 1e-9)  # rounded to uint8
+        np.testing.assert_array_equal(dna.read_image("2", 1), tiny.read_image("cam02", 11))  # identity
+    with DnaCapture(main.parent, SEQ) as dna:  # not applied unless asked
+        np.testing.assert_array_equal(dna.read_image("3", 1), tiny.read_image("cam03", 11))
+    _edit(annots, lambda h: h.__delitem__("Camera_Parameter/00/Color_Calibration"))
+    with pytest.raises(CaptureError, match=r"Camera_Parameter/00: color_correction requested but no Color_Calibration"):
+        DnaCapture(main.parent, SEQ, color_correction=True)
+
+
+def test_color_calibration_of_unknown_shape(written, tmp_path):
+    main, annots = _copy(written, tmp_path)
+    for cam in range(5):
+        _edit(annots, lambda h: h.create_dataset(f"Camera_Parameter/{cam:02d}/Color_Calibration", data=np.ones((2, 4))))
+    with pytest.warns(UserWarning, match=r"Color_Calibration: expected a finite 3x3 matrix or 3 per-channel gains"):
+        dna = DnaCapture(main.parent, SEQ)
+    assert dna.cameras["0"].color_correction is None
+    dna.close()
+    with pytest.raises(CaptureError, match=r"Camera_Parameter/00/Color_Calibration: expected a finite 3x3"):
+        DnaCapture(main.parent, SEQ, color_correction=True)
+
+
+def test_writer_colour_calibration_round_trip(tiny, body_model, tmp_path):
+    """A camera's RGB correction matrix survives write (stored for BGR) and read."""
+    matrix = np.array([[1.0, 0.1, 0.0], [0.0, 0.9, 0.05], [0.02, 0.0, 1.1]])
+    tiny.cameras["cam01"].color_correction = matrix
+    try:
+        write_smc(tiny, tmp_path, SEQ, body_model)
+    finally:
+        tiny.cameras["cam01"].color_correction = None
+    with h5py.File(tmp_path / "annotations" / f"{SEQ}_annots.smc", "r") as annots:
+        np.testing.assert_allclose(annots["Camera_Parameter/01/Color_Calibration"][()], matrix[::-1, ::-1])
+    with DnaCapture(tmp_path, SEQ) as dna:
+        np.testing.assert_allclose(dna.cameras["1"].color_correction, matrix)
+        assert dna.cameras["0"].color_correction is None
+    with h5py.File(tmp_path / f"{SEQ}.smc", "r") as main:  # default: up to 48 cams in Camera_5mp
+        assert sorted(main) == ["Camera_5mp"] and len(main["Camera_5mp"]) == 5
+
+
+def test_jpeg_export_stores_the_encoder_output(tiny, body_model, tmp_path):
+    write_smc(tiny, tmp_path, SEQ, body_model, image_ext=".jpg", jpeg_quality=80)
+    with DnaCapture(tmp_path, SEQ) as dna:
+        image = dna.read_image("1", 2)
+    bgr = tiny.read_image("cam01", 13)[..., ::-1]
+    reference = cv2.imdecode(cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 80])[1], cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(image, reference[..., ::-1])
+    assert not np.array_equal(image, bgr[..., ::-1])  # lossy, unlike the default PNG
