@@ -38,7 +38,6 @@ class EvaluateConfig:
     fid_min_images: int = DEFAULT_MIN_IMAGES
     batch_size: int = 8
     device: str = "auto"  # "auto": CUDA when available
-    render_backend: Literal["auto", "gsplat", "cpu"] = "auto"
     timing_frames: int = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
 
 

@@ -1,0 +1,94 @@
+# Render the held-out splits at every level of detail, score them, and build the paper's tables.
+from pig.avatar.config import AvatarConfig
+from pig.config import load_profile, load_section
+
+SPLITS = ["novel_view", "novel_pose"]
+
+
+def lod_levels():
+    """LOD indices 0..L-1 of the configured profile (section `avatar`, key `levels`)."""
+    return list(range(load_section(load_profile(PROFILE), "avatar", AvatarConfig).levels))
+
+
+rule render_split:
+    input:
+        checkpoint="results/{dataset}/{subject}/{variant}/avatar.pt",
+        capture="results/{dataset}/{subject}/capture/report.json",
+    output:
+        directory("results/{dataset}/{subject}/{variant}/renders/{split}"),
+    params:
+        capture=lambda wildcards, input: str(Path(input.capture).parent),
+        profile=PROFILE,
+    log:
+        "results/{dataset}/{subject}/{variant}/logs/render_{split}.log",
+    benchmark:
+        "results/{dataset}/{subject}/{variant}/benchmarks/render_{split}.tsv"
+    wildcard_constraints:
+        split="|".join(SPLITS),
+    resources:
+        gpu=1,
+        mem_mb=8000,
+        runtime=60,
+    shell:
+        "python -m pig.stages.render --checkpoint {input.checkpoint} --capture {params.capture} "
+        "--split {wildcards.split} --output {output} --profile {params.profile} > {log} 2>&1"
+
+
+rule evaluate:
+    input:
+        renders="results/{dataset}/{subject}/{variant}/renders/{split}",
+        capture="results/{dataset}/{subject}/capture/report.json",
+    output:
+        csv=expand("results/{{dataset}}/{{subject}}/{{variant}}/metrics/{{split}}_lod{l}.csv", l=lod_levels()),
+        summary=expand("results/{{dataset}}/{{subject}}/{{variant}}/metrics/{{split}}_lod{l}.json", l=lod_levels()),
+    params:
+        capture=lambda wildcards, input: str(Path(input.capture).parent),
+        output=lambda wildcards, output: str(Path(output.csv[0]).parent),
+        profile=PROFILE,
+    log:
+        "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}.log",
+    benchmark:
+        "results/{dataset}/{subject}/{variant}/benchmarks/evaluate_{split}.tsv"
+    wildcard_constraints:
+        split="|".join(SPLITS),
+    resources:
+        gpu=1,
+        mem_mb=8000,
+        runtime=60,
+    shell:
+        "python -m pig.stages.evaluate --capture {params.capture} --renders {input.renders} "
+        "--split {wildcards.split} --output {params.output} --profile {params.profile} > {log} 2>&1"
+
+
+rule make_tables:
+    input:
+        summaries=lambda wildcards: expand(
+            "results/{dataset}/{subject}/{variant}/metrics/{split}_lod{l}.json",
+            dataset=wildcards.dataset, subject=subjects(wildcards.dataset), variant=config["variants"],
+            split=SPLITS, l=lod_levels(),
+        ),
+        train_logs=lambda wildcards: expand(
+            "results/{dataset}/{subject}/{variant}/train_log.csv",
+            dataset=wildcards.dataset, subject=subjects(wildcards.dataset), variant=config["variants"],
+        ),
+    output:
+        table="results/tables/{dataset}.csv",
+        markdown="results/tables/{dataset}.md",
+        lod="results/tables/{dataset}_lod.csv",
+        lod_markdown="results/tables/{dataset}_lod.md",
+        plot="results/tables/{dataset}_training.png",
+    params:
+        variants=config["variants"],
+        output=lambda wildcards, output: str(Path(output.table).parent),
+    log:
+        "results/tables/logs/{dataset}.log",
+    benchmark:
+        "results/tables/benchmarks/{dataset}.tsv"
+    wildcard_constraints:
+        dataset="|".join(config["datasets"]),
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    shell:
+        "python -m pig.stages.tables --dataset {wildcards.dataset} --summaries {input.summaries} "
+        "--train-logs {input.train_logs} --variants {params.variants} --output {params.output} > {log} 2>&1"
