@@ -1,0 +1,121 @@
+"""The evaluation end of the pipeline: EXR round trip, table layout from known summaries, and the whole
+workflow through Snakemake on the tiny `test` profile (generate -> preprocess -> fit -> render -> evaluate -> tables)."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pig.data.exr import read_exr, write_exr
+from pig.stages.tables import BLANK_ROW, make_tables
+
+REPO = Path(__file__).resolve().parent.parent
+METRIC_COLUMNS = [f"{s}_{m}" for s in ("novel_view", "novel_pose") for m in ("psnr", "ssim", "lpips", "fid")]
+
+
+def test_exr_round_trip_is_exact(tmp_path, rng):
+    alpha = rng.random((7, 5)).astype(np.float32)
+    depth = (rng.random((7, 5)) * 50).astype(np.float32)
+    write_exr(tmp_path / "a.exr", {"A": alpha, "Z": depth})
+    back = read_exr(tmp_path / "a.exr")
+    assert set(back) == {"A", "Z"}
+    np.testing.assert_array_equal(back["A"], alpha)
+    np.testing.assert_array_equal(back["Z"], depth)
+    assert [p.name for p in tmp_path.iterdir()] == ["a.exr"]  # no temporary left behind
+    with pytest.raises(ValueError, match="one shape"):
+        write_exr(tmp_path / "b.exr", {"A": alpha, "Z": depth[:3]})
+
+
+def _summary(root: Path, subject: str, variant: str, split: str, lod: int, psnr: float, **extra) -> Path:
+    path = root / "synthetic" / subject / variant / "metrics" / f"{split}_lod{lod}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = {"split": split, "lod": lod, "images": 4, "psnr": psnr, "ssim": 0.9, "lpips": math.nan, "fid": math.nan,
+            "psnr_blank": 10.0, "ssim_blank": 0.5, "lpips_note": "LPIPS weights missing",
+            "fid_note": "FID needs >= 2000 images per set, have 4", "splats": 100 * 2**lod,
+            "model_mb": 1.0 + lod, "fps": 50.0 / (lod + 1), "device": "CPU x86_64 (2 threads)", **extra}
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_tables_layout_and_means(tmp_path):
+    summaries = []
+    for variant, base in (("pig", 30.0), ("no_offsets", 25.0)):
+        for s, subject in enumerate(("s0", "s1")):
+            for split in ("novel_view", "novel_pose"):
+                for lod in range(2):
+                    psnr = base + s * 2 + lod + (0 if split == "novel_view" else -3)
+                    summaries.append(_summary(tmp_path, subject, variant, split, lod, psnr))
+    logs = []
+    for subject in ("s0", "s1"):
+        log = tmp_path / "synthetic" / subject / "pig" / "train_log.csv"
+        pd.DataFrame({"iteration": [0, 10, 20], "wall_s": [0.0, 5.0, 9.0], "heldout_psnr": [12.0, np.nan, 20.0]}).to_csv(log, index=False)
+        logs.append(log)
+    out = tmp_path / "tables"
+    make_tables("synthetic", summaries, logs, ["pig", "no_offsets"], out)
+
+    main = pd.read_csv(out / "synthetic.csv")
+    assert list(main["variant"]) == ["pig", "no_offsets", BLANK_ROW]
+    assert set(METRIC_COLUMNS + ["splats"]) <= set(main.columns)
+    pig = main.set_index("variant").loc["pig"]
+    # Finest LOD (1), mean over subjects 0 and 2 dB apart: 30 + 1 + 1.
+    assert pig["novel_view_psnr"] == pytest.approx(32.0)
+    assert pig["novel_pose_psnr"] == pytest.approx(29.0)
+    assert pig["splats"] == 200
+    assert math.isnan(pig["novel_view_fid"]) and "2000 images" in pig["notes"]
+    assert main.set_index("variant").loc[BLANK_ROW, "novel_view_psnr"] == pytest.approx(10.0)
+
+    lod = pd.read_csv(out / "synthetic_lod.csv")
+    assert list(lod["lod"]) == ["1/2", "2/2", "1/2", "2/2"]
+    assert list(lod["splats"]) == [100, 200, 100, 200]
+    assert lod["psnr"].tolist() == pytest.approx([31.0, 32.0, 26.0, 27.0])
+    assert {"mb", "fps", "device"} <= set(lod.columns)
+    markdown = (out / "synthetic.md").read_text()
+    assert "| pig |" in markdown and "n/a" in markdown and "- n/a: FID needs >= 2000 images" in markdown
+    assert (out / "synthetic_training.png").stat().st_size > 1000
+
+
+def test_tables_reject_missing_variant(tmp_path):
+    path = _summary(tmp_path, "s0", "pig", "novel_view", 0, 30.0)
+    with pytest.raises(ValueError, match="no summaries for variant 'fixed_anchors'"):
+        make_tables("synthetic", [path], [], ["fixed_anchors"], tmp_path / "tables")
+
+
+@pytest.mark.slow
+def test_workflow_end_to_end(tmp_path):
+    """`snakemake` on the test profile from an empty working directory to the synthetic tables."""
+    if shutil.which("snakemake") is None:
+        pytest.skip("snakemake is not on PATH")
+    (tmp_path / "config").symlink_to(REPO / "config")
+    command = ["snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(tmp_path), "--cores", "2",
+               "--config", "profile=test", "--quiet", "rules", "results/tables/synthetic.csv"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    logs = "\n".join(f"== {p}\n{p.read_text()[-2000:]}" for p in sorted(tmp_path.glob("results/**/logs/*.log")))
+    assert done.returncode == 0, f"{done.stdout[-3000:]}\n{done.stderr[-5000:]}\n{logs}"
+
+    tables = tmp_path / "results" / "tables"
+    main = pd.read_csv(tables / "synthetic.csv").set_index("variant")
+    assert {"pig", BLANK_ROW} <= set(main.index)
+    assert set(METRIC_COLUMNS + ["splats", "notes"]) <= set(main.columns)
+    for split in ("novel_view", "novel_pose"):
+        # The fitted avatar must beat an all-black render by a wide margin on both held-out splits.
+        assert main.loc["pig", f"{split}_psnr"] > main.loc[BLANK_ROW, f"{split}_psnr"] + 5
+        assert main.loc["pig", f"{split}_ssim"] > main.loc[BLANK_ROW, f"{split}_ssim"]
+    lod = pd.read_csv(tables / "synthetic_lod.csv")
+    assert {"lod", "splats", "psnr", "ssim", "lpips", "fid", "mb", "fps", "device"} <= set(lod.columns)
+    assert (lod["splats"].diff().dropna() > 0).all() and (lod["fps"] > 0).all()
+    for name in ("synthetic.md", "synthetic_lod.md", "synthetic_training.png"):
+        assert (tables / name).stat().st_size > 0
+    # Renders: one PNG and one EXR (alpha, depth) per camera and frame of each split and LOD.
+    renders = tmp_path / "results" / "synthetic" / "subject00" / "pig" / "renders"
+    for split in ("novel_view", "novel_pose"):
+        pngs = sorted(renders.glob(f"{split}/lod0/*/*.png"))
+        assert pngs and len(pngs) == len(list(renders.glob(f"{split}/lod0/*/*.exr")))
+        exr = read_exr(pngs[0].with_suffix(".exr"))
+        assert set(exr) == {"A", "Z"} and 0 <= exr["A"].min() and exr["A"].max() <= 1 + 1e-5
