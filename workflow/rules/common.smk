@@ -22,5 +22,4 @@ def raw_root(dataset, subject):
 
 
 def default_targets():
-    dataset = config["dataset"]
-    return [f"results/{dataset}/{s}/capture/report.json" for s in subjects(dataset)]
+    return [f"results/tables/{config['dataset']}.csv"]
