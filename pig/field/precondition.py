@@ -1,0 +1,135 @@
+"""Preconditioned parameters: a tensor whose updates are filtered by (I + lambda L)^-2, in two application forms.
+
+Implements the dual-level update rules of Eqs. 4-5 (grid levels: lattice L_g; anchors: KNN L_knn).
+
+Forms (`PrecondConfig.form`, profile section `precond`):
+- "filter": the stored parameter is x; backward replaces dL/dx by (I + lambda L)^-2 dL/dx, then the
+  optimizer steps x. Under plain gradient descent this is Eqs. 4-5 verbatim.
+- "substitute": the stored parameter is u = (I + lambda L) x (Large Steps); forward solves
+  x = (I + lambda L)^-1 u and backward solves the same symmetric system, so dL/du = (I + lambda L)^-1 dL/dx
+  and a gradient step on u moves x by -lr (I + lambda L)^-2 dL/dx: again Eqs. 4-5 under gradient descent.
+- "none": a plain parameter (the no-preconditioning ablation).
+The forms differ under Adam, whose per-element scaling sits between the two solves; UniformAdam
+(pig.field.optim) keeps one scale per tensor and so keeps the filter. See benchmarks/NOTES.md.
+
+Use: `p = PreconditionedTensor(x0, system, form)`; `p()` returns x (differentiable); optimise
+`p.param`; `p.set_value(x)` overwrites x. Call `p()` once per optimisation step and reuse the result:
+every call runs the solves. A system is any object with `solve(b, slot) -> A^-1 b` and `apply(x) -> A x`
+(LatticeSystem, FactorizedSystem, CGSystem); `slot` names the warm start an iterative solver reuses.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import torch
+from torch import nn
+
+from .knn_graph import knn_laplacian
+from .knn_solve import CGSystem, FactorizedSystem
+
+Form = Literal["filter", "substitute", "none"]
+FORMS = ("filter", "substitute", "none")
+
+
+class LinearSystem(Protocol):
+    def solve(self, b: torch.Tensor, slot: str | None = None) -> torch.Tensor: ...
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor: ...
+
+
+@dataclass
+class PrecondConfig:
+    """Profile section `precond`: how the latent grid and the anchors are preconditioned and optimised."""
+
+    form: Form = "substitute"
+    optimizer: Literal["adam", "uniform_adam", "sgd"] = "uniform_adam"
+    grid_lr: float = 1e-2  # level g (0 = coarsest) uses grid_lr * grid_lr_growth ** g
+    grid_lr_growth: float = 1.5
+    grid_lambda: float = 2.0  # level g uses grid_lambda * grid_lambda_growth ** g
+    grid_lambda_growth: float = 1.25
+    grid_solver: Literal["matmul", "fft"] = "matmul"
+    anchor_lr: float = 2e-5
+    anchor_lambda: float = 8.0
+    knn_k: int = 8
+    knn_solver: Literal["factorized", "cg"] = "factorized"
+    cg_tol: float = 1e-5
+    cg_max_iter: int = 200
+
+    def grid_lrs(self, levels: int) -> list[float]:
+        return [self.grid_lr * self.grid_lr_growth**g for g in range(levels)]
+
+    def grid_lambdas(self, levels: int) -> list[float]:
+        return [self.grid_lambda * self.grid_lambda_growth**g for g in range(levels)]
+
+
+class SubstitutionSolve(torch.autograd.Function):
+    """x = A^-1 u; the backward pass solves with the same (symmetric) A."""
+
+    @staticmethod
+    def forward(ctx, u: torch.Tensor, system: LinearSystem) -> torch.Tensor:
+        ctx.system = system
+        return system.solve(u.detach(), "forward")
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: torch.Tensor):
+        return ctx.system.solve(grad, "backward"), None
+
+
+class FilteredGradient(torch.autograd.Function):
+    """Identity in forward; backward returns A^-2 grad (two solves)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, system: LinearSystem) -> torch.Tensor:
+        ctx.system = system
+        return x.view_as(x)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: torch.Tensor):
+        return ctx.system.solve(ctx.system.solve(grad, "filter1"), "filter2"), None
+
+
+class PreconditionedTensor(nn.Module):
+    """Holds the optimised tensor `param` (x, or u = A x for "substitute"); `forward()` returns x."""
+
+    def __init__(self, value: torch.Tensor, system: LinearSystem | None, form: Form):
+        super().__init__()
+        if form not in FORMS:
+            raise ValueError(f"PreconditionedTensor: expected form in {FORMS}, found {form!r}")
+        if form != "none" and system is None:
+            raise ValueError(f"PreconditionedTensor: form {form!r} needs a linear system")
+        self.form = form
+        self.system = system
+        value = value.detach()
+        self.param = nn.Parameter((system.apply(value) if form == "substitute" else value).clone())
+
+    def forward(self) -> torch.Tensor:
+        if self.form == "substitute":
+            return SubstitutionSolve.apply(self.param, self.system)
+        if self.form == "filter":
+            return FilteredGradient.apply(self.param, self.system)
+        return self.param
+
+    @torch.no_grad()
+    def set_value(self, value: torch.Tensor) -> None:
+        value = value.to(self.param)
+        self.param.copy_(self.system.apply(value) if self.form == "substitute" else value)
+
+    def extra_repr(self) -> str:
+        return f"form={self.form}, shape={tuple(self.param.shape)}"
+
+
+def knn_system(points: torch.Tensor, cfg: PrecondConfig) -> FactorizedSystem | CGSystem:
+    """I + lambda_knn L_knn on the symmetrised KNN graph of `points` (N, 3), with the configured solver."""
+    laplacian = knn_laplacian(points.detach().to("cpu", torch.float64).numpy(), cfg.knn_k)
+    if cfg.knn_solver == "factorized":
+        return FactorizedSystem(laplacian, cfg.anchor_lambda)
+    return CGSystem(laplacian, cfg.anchor_lambda, tol=cfg.cg_tol, max_iter=cfg.cg_max_iter)
+
+
+def precondition_anchors(points: torch.Tensor, cfg: PrecondConfig) -> PreconditionedTensor:
+    """Anchor positions (N, 3) as a PreconditionedTensor coupled by the KNN graph of these initial points."""
+    system = None if cfg.form == "none" else knn_system(points, cfg)
+    return PreconditionedTensor(points, system, cfg.form)
