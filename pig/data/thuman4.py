@@ -1,0 +1,209 @@
+"""Reader for a THuman4.0 subject folder (images/, masks/, calibration.json, smpl_params.npz) as a `RawCapture`.
+
+Accepts every variant in FORMATS.md (flat or 3x3 K/R, jpg or png, missing-frame lists with / or \\ separators,
+betas with 1 or N rows); data preparation for the paper's experiments, no paper equation.
+"""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pig.body.params import ParamsError, SmplxParams, from_thuman
+from pig.data.raw import CaptureError, RawCamera
+
+CALIBRATION = "calibration.json"
+PARAMS = "smpl_params.npz"
+MISSING_LISTS = {"images": "missing_img_files.txt", "masks": "missing_msk_files.txt"}
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+LAYOUT = ("images/camXX/%08d.jpg (or .png), masks/camXX/%08d.jpg (or .png), calibration.json, smpl_params.npz, "
+          "optionally missing_img_files.txt / missing_msk_files.txt")
+_FRAME_FILE = re.compile(r"^(\d+)$")
+_DIST_LENGTHS = (4, 5, 8, 12, 14)  # the lengths OpenCV accepts
+
+
+def required_files(root: str | Path) -> list[Path]:
+    """The files a subject folder must hold; CaptureError saying where to put the data if absent."""
+    root = Path(root)
+    if not root.is_dir():
+        raise CaptureError(f"THuman4 subject folder {root} not found: put the subject there with {LAYOUT}")
+    needed = [root / CALIBRATION, root / PARAMS, root / "images", root / "masks"]
+    missing = [str(p) for p in needed if not p.exists()]
+    if missing:
+        raise CaptureError(f"THuman4 subject folder {root} is incomplete: missing {missing}; expected {LAYOUT}")
+    return [root / CALIBRATION, root / PARAMS]
+
+
+class Thuman4Capture:
+    """One THuman4 subject; images and masks are decoded on demand, the file index is built once."""
+
+    def __init__(self, root: str | Path):
+        self.source = Path(root)
+        required_files(self.source)
+        self.cameras = read_calibration(self.source / CALIBRATION)
+        params_path = self.source / PARAMS
+        try:
+            with np.load(params_path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError) as err:
+            raise CaptureError(f"{params_path}: not a readable npz file: {err}") from None
+        try:
+            self.params: SmplxParams = from_thuman(arrays, str(params_path))
+        except ParamsError as err:
+            raise CaptureError(str(err)) from None
+        self.frames = list(range(self.params.num_frames))
+        missing = {kind: self._read_missing(kind) for kind in MISSING_LISTS}
+        listed = missing["images"] | missing["masks"]  # a missing image also has no usable mask
+        self._files: dict[str, dict[str, dict[int, Path]]] = {"images": {}, "masks": {}}
+        for kind in ("images", "masks"):
+            for cam in self.cameras:
+                files = self._index(self.source / kind / cam)
+                self._check_frames(kind, cam, files, {f for c, f in listed if c == cam})
+                self._files[kind][cam] = files
+        self._missing = listed
+
+    def has_frame(self, camera: str, frame: int) -> bool:
+        self._camera(camera)
+        return ((camera, frame) not in self._missing and frame in self._files["images"][camera]
+                and frame in self._files["masks"][camera])
+
+    def read_image(self, camera: str, frame: int) -> np.ndarray:
+        path = self._path("images", camera, frame)
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if image is None:
+            raise CaptureError(f"{path}: cannot decode the image (corrupt or not an image file)")
+        self._check_size(image, camera, path)
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+    def read_mask(self, camera: str, frame: int) -> np.ndarray:
+        path = self._path("masks", camera, frame)
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise CaptureError(f"{path}: cannot decode the mask (corrupt or not an image file)")
+        self._check_size(mask, camera, path)
+        return mask
+
+    def _camera(self, camera: str) -> RawCamera:
+        if camera not in self.cameras:
+            raise CaptureError(f"{self.source / CALIBRATION}: unknown camera {camera!r}; cameras are {list(self.cameras)}")
+        return self.cameras[camera]
+
+    def _path(self, kind: str, camera: str, frame: int) -> Path:
+        self._camera(camera)
+        path = self._files[kind][camera].get(frame)
+        if path is None or (camera, frame) in self._missing:
+            raise CaptureError(f"{self.source / kind / camera}: no usable file for frame {frame} "
+                               f"(absent or listed as missing)")
+        return path
+
+    def _check_size(self, image: np.ndarray, camera: str, path: Path) -> None:
+        cam = self.cameras[camera]
+        if image.shape[:2] != (cam.height, cam.width):
+            raise CaptureError(f"{path}: image is {image.shape[1]}x{image.shape[0]} (WxH), but {CALIBRATION} "
+                               f"gives imgSize [{cam.width}, {cam.height}] for {camera}")
+
+    def _index(self, folder: Path) -> dict[int, Path]:
+        """Frame id -> file of one camera folder; two files for one frame are an error."""
+        if not folder.is_dir():
+            raise CaptureError(f"{folder}: camera folder not found (the camera is in {CALIBRATION}); expected {LAYOUT}")
+        files: dict[int, Path] = {}
+        for entry in folder.iterdir():
+            match = _FRAME_FILE.match(entry.stem)
+            if entry.suffix.lower() not in IMAGE_SUFFIXES or not match:
+                continue
+            frame = int(match.group(1))
+            if frame in files:
+                raise CaptureError(f"{folder}: two files for frame {frame}: {files[frame].name} and {entry.name}")
+            files[frame] = entry
+        return files
+
+    def _check_frames(self, kind: str, camera: str, files: dict[int, Path], listed: set[int]) -> None:
+        """Every parameter frame must have a file or be listed missing; no file may lack parameters."""
+        folder = self.source / kind / camera
+        count = len(self.frames)
+        extra = sorted(f for f in files if f >= count)
+        if extra:
+            raise CaptureError(f"{folder}: {len(extra)} frame(s) from {extra[0]} on have no body parameters: "
+                               f"{PARAMS} has {count} frames (0..{count - 1}); frame counts disagree")
+        absent = sorted(set(self.frames) - set(files) - listed)
+        if absent:
+            raise CaptureError(f"{folder}: {len(absent)} of the {count} frames in {PARAMS} have no file and are not "
+                               f"listed in {MISSING_LISTS['images']} / {MISSING_LISTS['masks']} (first: {absent[:5]}); "
+                               "frame counts disagree")
+
+    def _read_missing(self, kind: str) -> set[tuple[str, int]]:
+        """(camera, frame) pairs listed in a missing-files list; paths may use / or \\ separators."""
+        path = self.source / MISSING_LISTS[kind]
+        if not path.is_file():
+            return set()
+        pairs = set()
+        for number, line in enumerate(path.read_text().splitlines(), start=1):
+            line = line.strip()
+            if not line:
+                continue
+            parts = [p for p in line.replace("\\", "/").split("/") if p]
+            stem = parts[-1].rsplit(".", 1)[0]
+            if len(parts) < 2 or parts[-2] not in self.cameras or not _FRAME_FILE.match(stem):
+                raise CaptureError(f"{path}:{number}: expected a path ending in <camera>/<frame>.jpg with a camera "
+                                   f"from {CALIBRATION}, found {line!r}")
+            pairs.add((parts[-2], int(stem)))
+        return pairs
+
+
+def read_calibration(path: Path) -> dict[str, RawCamera]:
+    """calibration.json -> cameras in file order; K and R flat (9) or 3x3, T of 3, imgSize [W, H]."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: calibration file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise CaptureError(f"{path}: not valid JSON: {err}") from None
+    if not isinstance(data, dict) or not data:
+        raise CaptureError(f"{path}: expected a non-empty mapping camera id -> {{K, R, T, imgSize, distCoeff}}")
+    return {str(name): _camera(str(name), entry, path) for name, entry in data.items()}
+
+
+def _matrix(entry: dict, key: str, size: int, where: str) -> np.ndarray:
+    if key not in entry:
+        raise CaptureError(f"{where}: missing key '{key}'; found {sorted(entry)}")
+    try:
+        value = np.asarray(entry[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CaptureError(f"{where}: '{key}' must be numeric, found {entry[key]!r}") from None
+    if value.size != size:
+        raise CaptureError(f"{where}: '{key}' has shape {value.shape}, expected {size} numbers")
+    if not np.all(np.isfinite(value)):
+        raise CaptureError(f"{where}: '{key}' contains NaN or infinite values")
+    return value.reshape(-1)
+
+
+def _camera(name: str, entry, path: Path) -> RawCamera:
+    where = f"{path}: camera '{name}'"
+    if not isinstance(entry, dict):
+        raise CaptureError(f"{where}: expected a mapping with K, R, T, imgSize, distCoeff")
+    K = _matrix(entry, "K", 9, where).reshape(3, 3)
+    R = _matrix(entry, "R", 9, where).reshape(3, 3)
+    T = _matrix(entry, "T", 3, where)
+    if "distCoeff" not in entry:
+        raise CaptureError(f"{where}: missing key 'distCoeff' (OpenCV distortion, length 5); found {sorted(entry)}")
+    dist = np.asarray(entry["distCoeff"], dtype=np.float64).reshape(-1)
+    if dist.size not in _DIST_LENGTHS or not np.all(np.isfinite(dist)):
+        raise CaptureError(f"{where}: 'distCoeff' must hold {' or '.join(map(str, _DIST_LENGTHS))} finite numbers, "
+                           f"found {entry['distCoeff']!r}")
+    size = _matrix(entry, "imgSize", 2, where)
+    if np.any(size < 1) or np.any(size != np.round(size)):
+        raise CaptureError(f"{where}: 'imgSize' must be [width, height] in pixels, found {entry['imgSize']!r}")
+    if not np.allclose(K[2], [0, 0, 1]):
+        hint = " (it looks transposed: store K row by row)" if np.allclose(K[:, 2], [0, 0, 1]) else ""
+        raise CaptureError(f"{where}: 'K' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], found {K.tolist()}{hint}")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CaptureError(f"{where}: 'K' focal lengths must be positive, found fx={K[0, 0]}, fy={K[1, 1]}")
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
+        raise CaptureError(f"{where}: 'R' is not a rotation matrix (R R^T differs from I by "
+                           f"{np.abs(R @ R.T - np.eye(3)).max():.3g})")
+    if np.linalg.det(R) < 0:
+        raise CaptureError(f"{where}: 'R' is a reflection (det = {np.linalg.det(R):.3f}), expected a rotation")
+    return RawCamera(name=name, K=K, R=R, T=T, width=int(size[0]), height=int(size[1]), dist=dist)

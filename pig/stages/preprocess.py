@@ -1,0 +1,235 @@
+"""Preprocess stage: raw capture -> undistorted, masked, resized frames, cameras, SMPL-X parameters, splits, report.
+
+Writes the directory `pig.data.capture.Capture.load` reads (FORMATS.md layouts in, interfaces' layout out)
+into a temporary folder renamed at the end, after the projection sanity check passed; no paper equation.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pig.body.model import BodyModel, BodyModelError
+from pig.body.params import ParamsError
+from pig.config import REPO_ROOT, ConfigError, load_profile, load_section, load_yaml
+from pig.data.formats import FORMATS, capture_format, open_capture
+from pig.data.projection_check import ProjectionCheckError, View, check_projection
+from pig.data.raw import CaptureError, RawCapture
+from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
+from pig.data.splits import SplitConfig, make_split
+
+RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
+
+
+@dataclass
+class PreprocessConfig:
+    scale: float = 1.0  # resize factor applied after undistortion
+    max_side: int | None = None  # cap on the longer output side in pixels (None: no cap)
+    background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # RGB in [0, 1] outside the mask
+    workers: int = 2  # threads decoding, undistorting and encoding frames (OpenCV releases the GIL)
+    png_compression: int = 1  # zlib level of the written PNGs (1: fast)
+    check_frames: int = 3  # frames per camera sampled for the projection check
+    check_tolerance_m: float = 0.05  # boundary tolerance of the check's IoU at the body's depth (metres)
+    min_iou: float = 0.9  # every camera must reach this tolerant IoU
+    mask_resize: Literal["area", "nearest"] = "area"  # mask resampling; "nearest" as DNA-Rendering peers do
+    # Dataset name -> overrides of the keys above, e.g. dna: {scale: 0.5, mask_resize: nearest} (peers' protocol).
+    datasets: dict[str, dict] = field(default_factory=dict)
+
+
+def resolve_body_model(explicit: str | Path | None, raw_root: Path) -> Path:
+    """The body model to use: the explicit path, else body_model.npz in the raw folder, else a clear error."""
+    if explicit is not None:
+        path = Path(explicit)
+        if not path.is_file():
+            raise BodyModelError(f"body model {path} does not exist (expected an SMPL-X npz such as SMPLX_NEUTRAL.npz)")
+        return path
+    if (raw_root / RAW_BODY_MODEL).is_file():
+        return raw_root / RAW_BODY_MODEL
+    raise BodyModelError(
+        f"no body model for {raw_root}: download SMPLX_NEUTRAL.npz (licensed, smpl-x.is.tue.mpg.de), put it e.g. at "
+        "data/body_models/SMPLX_NEUTRAL.npz and set `body_model:` in the dataset YAML or pass --body-model; "
+        f"a synthetic capture has {RAW_BODY_MODEL} in its folder")
+
+
+def _check_frames(frames: list[int], count: int) -> list[int]:
+    """`count` frames evenly spaced over `frames` (all of them if fewer)."""
+    picks = np.unique(np.round(np.linspace(0, len(frames) - 1, min(count, len(frames)))).astype(int))
+    return [frames[i] for i in picks]
+
+
+def _write_png(path: Path, image: np.ndarray, compression: int) -> None:
+    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, compression]):
+        raise CaptureError(f"{path}: OpenCV could not write the PNG (disk full or not writable?)")
+
+
+def _replace_dir(tmp: Path, output: Path) -> None:
+    """Move the finished `tmp` to `output`, replacing an older result only once the new one is complete."""
+    if output.exists():
+        old = output.with_name(f".{output.name}.old-{os.getpid()}")
+        os.replace(output, old)
+        os.replace(tmp, output)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, output)
+
+
+def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfig, body_model: str | Path,
+                       split_cfg: SplitConfig, subject: str, split_source: str = "split",
+                       progress: bool = True) -> dict:
+    """Write the preprocessed capture of `raw` to `output` (atomically) and return its report."""
+    start = time.perf_counter()
+    background = np.round(np.clip(np.asarray(cfg.background, dtype=np.float64), 0, 1) * 255).astype(np.uint8)
+    if background.shape != (3,):
+        raise ConfigError(f"preprocess.background must be 3 numbers (RGB in [0, 1]), found {cfg.background}")
+    output = Path(output)
+    body_model = Path(body_model)
+    cameras = list(raw.cameras)
+    split = make_split(cameras, raw.frames, split_cfg, subject, split_source)
+    needed = {(c, f) for part in split.values() for c in part["cameras"] for f in part["frames"]}
+    pairs = [(c, f) for c in cameras for f in raw.frames if (c, f) in needed and raw.has_frame(c, f)]
+    frames = sorted({f for part in split.values() for f in part["frames"]})
+    model = BodyModel.from_file(body_model).to(torch.float64)
+    if not pairs:
+        raise CaptureError(f"{raw.source}: none of the split's images exist (all listed as missing)")
+
+    sizes = {c: output_size(cam.width, cam.height, cfg.scale, cfg.max_side) for c, cam in raw.cameras.items()}
+    views = {c: View(scaled_intrinsics(cam.K, sizes[c][0] / cam.width, sizes[c][1] / cam.height), cam.R, cam.T,
+                     *sizes[c]) for c, cam in raw.cameras.items()}
+    by_camera = {c: [f for cc, f in pairs if cc == c] for c in cameras}
+    checked = {c: _check_frames(fs, cfg.check_frames) for c, fs in by_camera.items() if fs}
+    # Pose the body for the check first: a body model that does not fit the parameters fails before any writing.
+    check_ids = sorted({f for fs in checked.values() for f in fs})
+    with torch.no_grad():
+        sel = raw.params.select([raw.frames.index(f) for f in check_ids])
+        posed = model(torch.from_numpy(sel.full_pose), torch.from_numpy(sel.betas),
+                      torch.from_numpy(sel.expression), torch.from_numpy(sel.transl)).vertices.numpy()
+    vertices = dict(zip(check_ids, posed))
+
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(f".{output.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        for cam in cameras:
+            (tmp / "images" / cam).mkdir(parents=True)
+            (tmp / "masks" / cam).mkdir(parents=True)
+
+        def work(rectify: Rectifier, frame: int) -> np.ndarray | None:
+            cam = rectify.camera.name
+            image, mask = rectify(raw.read_image(cam, frame), raw.read_mask(cam, frame), background)
+            _write_png(tmp / "images" / cam / f"{frame:08d}.png", image[..., ::-1], cfg.png_compression)
+            _write_png(tmp / "masks" / cam / f"{frame:08d}.png", mask.astype(np.uint8) * 255, cfg.png_compression)
+            return mask if frame in checked[cam] else None
+
+        check_masks: dict[str, list[np.ndarray]] = {c: [] for c in checked}
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)  # parallel over images instead; OpenCV's own pool would oversubscribe the cores
+        pool = ThreadPoolExecutor(max(1, cfg.workers))
+        bar = tqdm(total=len(pairs), desc="preprocess", unit="img", disable=not progress)
+        try:
+            # Camera by camera, so only one camera's undistortion maps are alive at a time.
+            for cam, cam_frames in by_camera.items():
+                rectify = Rectifier(raw.cameras[cam], *sizes[cam], cfg.mask_resize)
+                for mask in pool.map(lambda frame: work(rectify, frame), cam_frames):
+                    if mask is not None:
+                        check_masks[cam].append(mask)
+                    bar.update()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+            cv2.setNumThreads(threads)
+            bar.close()
+
+        cameras_json = {c: {"K": v.K.tolist(), "R": v.R.tolist(), "T": v.T.tolist(), "width": v.width,
+                            "height": v.height} for c, v in views.items()}
+        (tmp / "cameras.json").write_text(json.dumps(cameras_json, indent=1))
+        row = {f: i for i, f in enumerate(raw.frames)}
+        params = raw.params.select([row[f] for f in frames])
+        params.save(tmp / "smplx.npz", frame_ids=frames)
+        (tmp / "split.json").write_text(json.dumps(split, indent=1))
+        shutil.copyfile(body_model, tmp / "body_model.npz")
+
+        check = check_projection({c: views[c] for c in checked}, checked, check_masks, vertices,
+                                 model.faces.numpy(), cfg.check_tolerance_m, cfg.min_iou)
+        report = {
+            "format": type(raw).__name__,
+            "source": str(raw.source),
+            "subject": subject,
+            "body_model": str(body_model),
+            "config": asdict(cfg),
+            "cameras": len(cameras),
+            "frames": len(frames),
+            "images": len(pairs),
+            "missing": len(needed) - len(pairs),
+            "background": background.tolist(),
+            "projection_check": check,
+            "seconds": round(time.perf_counter() - start, 3),
+        }
+        (tmp / "report.json").write_text(json.dumps(report, indent=1))
+        _replace_dir(tmp, output)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return report
+
+
+def _dataset(value: str | None) -> dict:
+    """The dataset YAML (a name under config/datasets/ or a path) with `_path` set; {} when not given."""
+    if value is None:
+        return {}
+    path = Path(value)
+    if path.suffix not in (".yaml", ".yml"):
+        path = REPO_ROOT / "config" / "datasets" / f"{value}.yaml"
+    data = load_yaml(path)
+    data["_path"] = str(path)
+    return data
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pig.stages.preprocess", description=__doc__.split("\n")[0])
+    parser.add_argument("--format", choices=sorted(FORMATS), default=None,
+                        help="capture format (default: the dataset's `format`, else thuman4)")
+    parser.add_argument("--input", required=True, type=Path, help="raw subject folder (e.g. data/thuman4/subject00)")
+    parser.add_argument("--output", required=True, type=Path, help="preprocessed capture folder to write")
+    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path (section preprocess)")
+    parser.add_argument("--dataset", default=None,
+                        help="dataset YAML or name under config/datasets/ (its `split:` section and `body_model`)")
+    parser.add_argument("--subject", default=None, help="subject name for per-subject split rules (default: input folder name)")
+    parser.add_argument("--body-model", default=None, type=Path,
+                        help="SMPL-X model npz (default: the dataset's body_model, else body_model.npz in --input)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    args = parser.parse_args(argv)
+    try:
+        profile = load_profile(args.profile)
+        dataset = _dataset(args.dataset)
+        per_dataset = ((profile.get("preprocess") or {}).get("datasets") or {}).get(dataset.get("name"))
+        cfg = load_section(profile, "preprocess", PreprocessConfig, overrides=per_dataset)
+        split_cfg = load_section(dataset, "split", SplitConfig)
+        split_source = f"{dataset.get('_path', 'default split')}: section 'split'"
+        fmt = args.format or dataset.get("format") or "thuman4"
+        body_model = resolve_body_model(args.body_model or dataset.get("body_model"), args.input)
+        options = {"body_model": body_model} if capture_format(fmt).needs_body_model else {}
+        raw = open_capture(fmt, args.input, **options)
+        report = preprocess_capture(raw, args.output, cfg, body_model, split_cfg, args.subject or args.input.name,
+                                    split_source, progress=not args.no_progress)
+    except (CaptureError, ConfigError, ParamsError, BodyModelError, ProjectionCheckError) as err:
+        print(f"preprocess: error: {err}", file=sys.stderr)
+        return 1
+    worst = min(report["projection_check"]["cameras"].items(), key=lambda item: item[1]["iou"])
+    print(f"preprocess: wrote {report['images']} images of {report['cameras']} cameras to {args.output} "
+          f"in {report['seconds']:.1f} s; lowest projection IoU {worst[1]['iou']:.3f} ({worst[0]})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
