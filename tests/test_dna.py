@@ -2,7 +2,9 @@
 against independent references (raw HDF5 values, explicit matrix algebra), malformed files."""
 from __future__ import annotations
 
+import json
 import shutil
+import warnings
 from pathlib import Path
 
 import cv2
@@ -356,3 +358,93 @@ def test_jpeg_export_stores_the_encoder_output(tiny, body_model, tmp_path):
     reference = cv2.imdecode(cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 80])[1], cv2.IMREAD_COLOR)
     np.testing.assert_array_equal(image, reference[..., ::-1])
     assert not np.array_equal(image, bgr[..., ::-1])  # lossy, unlike the default PNG
+
+
+def test_gender_mismatch_with_the_model_file_is_warned(tiny, body_model, tmp_path):
+    write_smc(tiny, tmp_path, SEQ, body_model, actor={"gender": "female"})
+    path = tmp_path / "SMPLX_MALE.npz"
+    np.savez(path, **_tiny_body_arrays(np.random.default_rng(1)))
+    with pytest.warns(UserWarning, match="gender is 'female' but the body model is .*SMPLX_MALE"):
+        DnaCapture(tmp_path, SEQ, body_model=path).close()
+    (tmp_path / "SMPLX_MALE.npz").rename(tmp_path / "SMPLX_FEMALE.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        DnaCapture(tmp_path, SEQ, body_model=tmp_path / "SMPLX_FEMALE.npz").close()
+
+
+def _thuman4_as_dna(tmp_path) -> tuple[Path, Path, "Thuman4Capture"]:
+    """B's tiny THuman4 subject (capsule body, distorted ring cameras) exported to .smc; cam 3 in Camera_12mp.
+
+    The exported body model gets a nonzero hands_mean (the capsule's hands carry no weight, so the
+    geometry and the projection check are unchanged, but the convention is exercised)."""
+    from thuman4_fixture import capsule_body_arrays, write_thuman4
+
+    from pig.data.thuman4 import Thuman4Capture
+
+    raw = write_thuman4(tmp_path / "raw", cameras=4, frames=5, width=192, height=160)
+    arrays = capsule_body_arrays()
+    rng = np.random.default_rng(3)
+    arrays.update(hands_meanl=rng.normal(0, 0.3, 45), hands_meanr=rng.normal(0, 0.3, 45))
+    model_path = tmp_path / "models" / "SMPLX_NEUTRAL.npz"
+    model_path.parent.mkdir()
+    np.savez(model_path, **arrays)
+    source = Thuman4Capture(raw)
+    write_smc(source, tmp_path / "dna", "0001_01", model_path, num_5mp=3)
+    return tmp_path / "dna" / "0001_01", model_path, source
+
+
+@pytest.fixture(scope="module")
+def dna_subject(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("dna_subject")
+    root, model_path, source = _thuman4_as_dna(tmp)
+    dataset = tmp / "dna.yaml"
+    dataset.write_text(f"name: dna\nformat: dna\nbody_model: {model_path}\n"
+                       "split:\n  novel_view_cameras: ['3']\n  novel_pose_fraction: 0.2\n")
+    return root, dataset, source
+
+
+def _preprocess(dna_subject, out: Path, profile: str):
+    from pig.data.capture import Capture
+    from pig.stages.preprocess import main
+
+    root, dataset, _ = dna_subject
+    assert main(["--input", str(root), "--output", str(out), "--profile", profile, "--dataset", str(dataset),
+                 "--no-progress"]) == 0
+    return Capture.load(out)
+
+
+def test_preprocess_format_dna_end_to_end(dna_subject, tmp_path):
+    """`--format dna` through the preprocess stage: projection check passes, protocol split, cameras and poses kept."""
+    capture = _preprocess(dna_subject, tmp_path / "capture", "test")
+    source = dna_subject[2]
+    assert capture.split == {"train": {"cameras": ["0", "1", "2"], "frames": [0, 1, 2, 3]},
+                             "novel_view": {"cameras": ["3"], "frames": [0, 1, 2, 3]},
+                             "novel_pose": {"cameras": ["0", "1", "2", "3"], "frames": [4]}}
+    for index, cam in enumerate(source.cameras.values()):
+        np.testing.assert_allclose(capture.cameras[str(index)].R, cam.R, atol=1e-9)
+        np.testing.assert_allclose(capture.cameras[str(index)].T, cam.T, atol=1e-9)
+    np.testing.assert_allclose(capture.params.full_pose, source.params.full_pose, atol=1e-12)
+    report = json.loads((tmp_path / "capture" / "report.json").read_text())
+    assert report["projection_check"]["passed"] and report["format"] == "DnaCapture"
+
+
+def test_half_resolution_profile_option(dna_subject, tmp_path):
+    """The profiles' dna override (scale 0.5, nearest masks) against the full-resolution output: 2x2 block
+    means for images, every second pixel for masks, K scaled about pixel centres (cx' = (cx + 0.5) / 2 - 0.5)."""
+    full_profile = tmp_path / "full.yaml"
+    full_profile.write_text("preprocess:\n  scale: 1.0\n")
+    full = _preprocess(dna_subject, tmp_path / "full", str(full_profile))
+    half = _preprocess(dna_subject, tmp_path / "half", "test")
+    for name, cam in full.cameras.items():
+        small = half.cameras[name]
+        assert (small.width, small.height) == (cam.width // 2, cam.height // 2)
+        expected = cam.K.copy()
+        expected[0, 0], expected[1, 1] = cam.K[0, 0] / 2, cam.K[1, 1] / 2
+        expected[:2, 2] = (cam.K[:2, 2] + 0.5) / 2 - 0.5
+        np.testing.assert_allclose(small.K, expected, atol=1e-12)
+        for frame in (0, 4):
+            mask = half.mask(name, frame)
+            np.testing.assert_array_equal(mask, full.mask(name, frame)[::2, ::2])
+            blocks = full.image(name, frame).reshape(cam.height // 2, 2, cam.width // 2, 2, 3).mean(axis=(1, 3))
+            reference = np.where(mask[..., None], blocks, 0.0)  # the test profile's background is black
+            np.testing.assert_allclose(half.image(name, frame), reference, atol=0.5 / 255 + 1e-6)

@@ -16,6 +16,7 @@ Layout choices that no real file has confirmed (UNVERIFIED), and how they are ha
 """
 from __future__ import annotations
 
+import re
 import warnings
 from pathlib import Path
 
@@ -184,6 +185,7 @@ class DnaCapture:
                 self.cameras[str(cam)] = self._camera(cam, width, height)
         self.cameras = dict(sorted(self.cameras.items(), key=lambda item: int(item[0])))
         self._hands_mean = None if body_model is None else _hands_mean(body_model)
+        _check_gender(self.actor.get("gender"), body_model, self.main_path)
 
     @property
     def params(self) -> SmplxParams:
@@ -333,6 +335,16 @@ class DnaCapture:
             raise CaptureError(f"{_where(annots, base)}: color_correction requested but no Color_Calibration")
         return RawCamera(name=str(cam), K=K, R=world_to_cam[:3, :3], T=world_to_cam[:3, 3], width=width,
                          height=height, dist=dist, color_correction=correction)
+
+
+def _check_gender(gender, body_model, where: Path) -> None:
+    """Warn when the model file's name names another gender than the actor's (fits use gendered models)."""
+    if not isinstance(gender, str) or not isinstance(body_model, (str, Path)):
+        return
+    named = [t for t in re.split(r"[^a-z]+", Path(body_model).stem.lower()) if t in ("male", "female", "neutral")]
+    if named and gender.lower() in ("male", "female") and named[0] != gender.lower():
+        warnings.warn(f"{where}: the actor's gender is {gender!r} but the body model is {body_model}; the official "
+                      f"loader fits with SMPLX_{gender.upper()}", stacklevel=3)
 
 
 def _plain(value):
