@@ -1,10 +1,10 @@
-"""Configuration of the avatar model (profile section `avatar`): anchors, levels, field and decoder sizes.
+"""Configuration of the avatar model (profile section `avatar`): anchors, levels, decoders, refinement.
 
-Defaults are the paper's (Section 3.6); the `cpu-demo` and `test` profiles shrink them.
+Defaults are the paper's (Section 3.6); the latent grid is configured in section `field` (pig.field).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 
 @dataclass
@@ -13,9 +13,6 @@ class AvatarConfig:
     levels: int = 4  # nested LOD subsets by halving
     anchor_seed: int = 0
     sh_degree: int = 3
-    grid_resolutions: list[int] = field(default_factory=lambda: [8, 24, 40, 56, 72, 88])
-    grid_features: int = 16
-    grid_margin: float = 0.1  # fraction of the anchors' bounding-box extent added on each side
     hidden_layers: int = 5  # colour and shape decoders
     hidden_width: int = 512
     single_mlp: bool = False  # ablation: one MLP decodes colour and shape together

@@ -1,0 +1,52 @@
+"""Construction of an avatar from a serialisable spec, and its per-group optimisers.
+
+Canonical body (zero pose, the capture's betas) -> anchors (Sec. 3.1), latent grid (Eq. 1) and anchors
+preconditioned per Eqs. 4-5, decoders (Eqs. 8-9) and refiner (Eq. 13); the paper's learning rates.
+"""
+from __future__ import annotations
+
+import torch
+
+from pig.body.model import NUM_JOINTS, BodyModel
+from pig.body.params import SmplxParams
+from pig.config import from_dict
+from pig.field.latent_grid import FieldConfig, LatentGrid
+from pig.field.optim import Adam, build_optimizer, field_param_groups
+from pig.field.precondition import PrecondConfig, precondition_anchors
+
+from .anchors import sample_attachment
+from .config import AvatarConfig
+from .model import AvatarModel
+
+
+def canonical_vertices(body_model: BodyModel, betas) -> torch.Tensor:
+    """The canonical mesh: the body model at zero pose with the capture's betas, zero expression, no translation."""
+    zero = torch.zeros(1, NUM_JOINTS, 3, dtype=body_model.dtype)
+    return body_model(zero, torch.as_tensor(betas, dtype=body_model.dtype)[None]).vertices[0]
+
+
+def build_avatar(spec: dict) -> AvatarModel:
+    """spec: {"avatar", "field", "precond": config dicts, "body_model": npz arrays, "params": SmplxParams
+    fields (training frames, in order), "frame_ids": training frame ids}. Deterministic per spec."""
+    cfg = from_dict(AvatarConfig, spec["avatar"], "avatar spec")
+    field_cfg = from_dict(FieldConfig, spec["field"], "field spec")
+    precond = from_dict(PrecondConfig, spec["precond"], "precond spec")
+    body_model = BodyModel(spec["body_model"], source="body model of the avatar spec")
+    params = SmplxParams(**spec["params"])
+    with torch.no_grad():
+        canon = canonical_vertices(body_model, params.betas)
+    attachment = sample_attachment(canon.double().numpy(), body_model.faces.numpy(), cfg.num_anchors, cfg.levels, cfg.anchor_seed)
+    x_init = torch.as_tensor(attachment.x_init, dtype=body_model.dtype)
+    grid_rng = torch.Generator().manual_seed(cfg.anchor_seed)
+    grid = LatentGrid.from_config(field_cfg, precond, x_init.min(0).values, x_init.max(0).values, grid_rng)
+    anchors = precondition_anchors(x_init, precond) if cfg.learn_anchors else None
+    return AvatarModel(cfg, body_model, params, spec["frame_ids"], attachment, canon, grid, anchors)
+
+
+def build_optimizers(model: AvatarModel, lr_decoders: float, lr_refine: float, precond: PrecondConfig) -> list[torch.optim.Optimizer]:
+    """[field optimiser (grid levels + anchors, per-level rates), Adam for decoders and refiner]."""
+    field = build_optimizer(precond.optimizer, field_param_groups(model.grid, model.anchors, precond))
+    groups = [{"name": "decoders", "params": list(model.decoder.parameters()), "lr": lr_decoders}]
+    if model.refiner.net is not None:
+        groups.append({"name": "refine", "params": list(model.refiner.parameters()), "lr": lr_refine})
+    return [field, Adam(groups)]

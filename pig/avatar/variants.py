@@ -1,0 +1,26 @@
+"""Method variants: a profile's `variants:` section maps a name to per-section config overrides.
+
+Selects the full method (`pig`) and the ablations of Section 4.5 (`no_precond`, `fixed_anchors`,
+`no_offsets`, `single_mlp`, body-parameter noise `noise_<sigma>`); no paper equation.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from pig.config import ConfigError
+
+
+def variant_overrides(profile: dict[str, Any], name: str) -> dict[str, dict[str, Any]]:
+    """{section: {key: value}} of variant `name`; `pig` with no entry means no overrides."""
+    variants = profile.get("variants") or {}
+    where = f"{profile.get('_path', '<profile>')}: section 'variants'"
+    if not isinstance(variants, dict):
+        raise ConfigError(f"{where}: expected a mapping of variant name -> overrides")
+    if name not in variants:
+        if name == "pig":
+            return {}
+        raise ConfigError(f"{where}: unknown variant {name!r}; expected one of {sorted(variants)}")
+    overrides = variants[name] or {}
+    if not isinstance(overrides, dict) or not all(isinstance(v, dict) for v in overrides.values()):
+        raise ConfigError(f"{where}.{name}: expected a mapping of section -> {{key: value}}, found {overrides!r}")
+    return {section: dict(values) for section, values in overrides.items()}

@@ -1,0 +1,257 @@
+"""Fit stage: optimise an avatar on the train split of a preprocessed capture; resumable, logged.
+
+The optimisation of Section 3.5 (Eq. 15 per iteration on one random LOD, V views x K timesteps) with the
+per-group optimisers of Section 3.3 (Eqs. 4-5); writes avatar.pt, train_log.csv and train_log.png.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pig.avatar.batches import CaptureViews, sample_batch
+from pig.avatar.build import build_avatar, build_optimizers
+from pig.avatar.checkpoint import load_training_state, save_checkpoint
+from pig.avatar.config import AvatarConfig
+from pig.avatar.losses import band_radius, boundary_band, image_loss
+from pig.avatar.variants import variant_overrides
+from pig.body.params import SmplxParams
+from pig.config import ConfigError, load_profile, load_section
+from pig.data.capture import Capture
+from pig.field.latent_grid import FieldConfig
+from pig.field.precondition import PrecondConfig
+from pig.metrics.psnr import psnr
+from pig.render.api import RasterizerConfig, render_gaussians
+
+LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr"]
+
+
+@dataclass
+class FitConfig:
+    """Profile section `fit`; defaults are the paper's (Section 3.6)."""
+
+    iterations: int = 100_000
+    views: int = 4  # cameras per timestep per iteration
+    timesteps: int = 5  # timesteps per iteration
+    lr_decoders: float = 1e-3
+    lr_refine: float = 1e-4
+    weight_l1: float = 8.0
+    weight_ssim: float = 2.0
+    weight_lpips: float = 2.0
+    lpips_net: str = "vgg"
+    lpips_backbone_weights: str | None = None  # None: the torch hub cache
+    lpips_linear_weights: str | None = None
+    band_radius_px: float = 3.0  # silhouette band radius at `band_reference_height` rows (THuman4)
+    band_reference_height: int = 1150
+    sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
+    eval_every: int = 1000  # held-out novel-view PSNR every this many iterations (and at the end)
+    eval_frames: int = 4  # training frames rendered from the novel-view cameras
+    checkpoint_minutes: float = 5.0
+    seed: int = 0
+
+
+def perturb_params(params: SmplxParams, sigma: float, seed: int) -> SmplxParams:
+    """Zero-mean Gaussian noise of std `sigma` on the global + body joint angles and on the betas."""
+    if sigma <= 0:
+        return params
+    rng = np.random.default_rng(seed)
+    pose = params.full_pose.copy()
+    pose[:, :22] += rng.normal(scale=sigma, size=pose[:, :22].shape)
+    betas = params.betas + rng.normal(scale=sigma, size=params.betas.shape)
+    return SmplxParams(pose, betas, params.expression.copy(), params.transl.copy())
+
+
+def _load_lpips(cfg: FitConfig, device):
+    """The LPIPS module, or None with a one-line notice when its weights are absent."""
+    if cfg.weight_lpips <= 0:
+        return None
+    from pig.metrics.lpips import LPIPS, WeightsMissing
+
+    try:
+        net = LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights)
+    except WeightsMissing as err:
+        print(f"fit: LPIPS term left out of the loss ({err})", file=sys.stderr)
+        return None
+    return net.to(device).eval().requires_grad_(False)
+
+
+def _write_log(path: Path, rows: list[dict]) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=LOG_COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(buffer.getvalue())
+    os.replace(tmp, path)
+
+
+def _plot_log(path: Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_loss, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
+    ax_loss.semilogy([r["iteration"] for r in rows], [r["loss"] for r in rows], lw=0.5)
+    ax_loss.set_xlabel("iteration")
+    ax_loss.set_ylabel("training loss (Eq. 15)")
+    evals = [r for r in rows if r["heldout_psnr"] != ""]
+    ax_psnr.plot([r["wall_s"] for r in evals], [r["heldout_psnr"] for r in evals], marker="o")
+    ax_psnr.set_xlabel("wall time [s]")
+    ax_psnr.set_ylabel("held-out novel-view PSNR [dB] (finest LOD)")
+    for ax in (ax_loss, ax_psnr):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+class HeldOut:
+    """Novel-view cameras on a few training frames: PSNR at the finest LOD, black background, masked truth."""
+
+    def __init__(self, capture: Capture, model, count: int, device):
+        split = capture.split["novel_view"]
+        frames = [f for f in split["frames"] if f in model.frame_ids]
+        picks = [frames[int(i)] for i in np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).round())] if frames else []
+        self.views = CaptureViews(capture, split["cameras"], picks, device, desc="load held-out views") if picks else None
+
+    @torch.no_grad()
+    def psnr(self, model, raster: RasterizerConfig) -> float:
+        if self.views is None:
+            return math.nan
+        values = []
+        black = torch.zeros(3, device=self.views.device)
+        for frame in self.views.frames:
+            step = model.timestep_of_frame(frame)
+            g = model(torch.tensor([step]), model.num_levels - 1)
+            for vb in self.views.batch(self.views.frames.index(frame), self.views.cameras):
+                out = render_gaussians(g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], vb.viewmats, vb.Ks,
+                                       vb.width, vb.height, black, backend=raster.backend, max_pairs=raster.max_pairs)
+                truth = vb.images * vb.masks[..., None]
+                values += psnr(out.color.clamp(0, 1).permute(0, 3, 1, 2), truth.permute(0, 3, 1, 2)).tolist()
+        return float(np.mean(values))
+
+
+def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", variant: str = "pig", device: str = "cpu",
+        on_iteration: Callable[[int], None] | None = None) -> Path:
+    """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
+
+    `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
+    """
+    profile = load_profile(profile_name)
+    overrides = variant_overrides(profile, variant)
+    unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
+    if unknown:
+        raise ConfigError(f"{profile['_path']}: variant {variant!r} overrides unknown section(s) {unknown}")
+    avatar_cfg = load_section(profile, "avatar", AvatarConfig, overrides.get("avatar"))
+    fit_cfg = load_section(profile, "fit", FitConfig, overrides.get("fit"))
+    field_cfg = load_section(profile, "field", FieldConfig, overrides.get("field"))
+    precond_cfg = load_section(profile, "precond", PrecondConfig, overrides.get("precond"))
+    raster = load_section(profile, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
+    device = torch.device(device)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    state_path = output_dir / "checkpoint.pt"
+    avatar_path = output_dir / "avatar.pt"
+    log_path = output_dir / "train_log.csv"
+
+    capture = Capture.load(capture_dir)
+    train = capture.split["train"]
+    index = [capture.frames.index(f) for f in train["frames"]]
+    params = perturb_params(capture.params.select(index), fit_cfg.sigma_body, fit_cfg.seed)
+    spec = {
+        "avatar": asdict(avatar_cfg), "field": asdict(field_cfg), "precond": asdict(precond_cfg),
+        "body_model": dict(np.load(Path(capture_dir) / "body_model.npz", allow_pickle=True)),
+        "params": asdict(params), "frame_ids": list(train["frames"]), "variant": variant,
+    }
+    torch.manual_seed(fit_cfg.seed)
+    model = build_avatar(spec).to(device)
+    optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg)
+    generator = torch.Generator().manual_seed(fit_cfg.seed)
+    start, wall_before, rows = 0, 0.0, []
+    if state_path.exists():
+        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, fit_cfg)
+        print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
+
+    views = CaptureViews(capture, train["cameras"], train["frames"], device)
+    held_out = HeldOut(capture, model, fit_cfg.eval_frames, device)
+    lpips = _load_lpips(fit_cfg, device)
+    background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
+    weights = (fit_cfg.weight_l1, fit_cfg.weight_ssim, fit_cfg.weight_lpips)
+
+    def checkpoint(path: Path, iteration: int, wall: float) -> None:
+        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, fit_cfg)
+        _write_log(log_path, rows)
+
+    started = time.perf_counter()
+    last_save = started
+    progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
+    for i in progress:
+        lod = int(torch.randint(model.num_levels, (1,), generator=generator))
+        picks = sample_batch(generator, model.num_timesteps, train["cameras"], fit_cfg.timesteps, fit_cfg.views)
+        g = model(torch.tensor([step for step, _ in picks]), lod)
+        num_views = sum(len(cams) for _, cams in picks)
+        totals: dict[str, torch.Tensor] = {}
+        for k, (step, cams) in enumerate(picks):
+            for vb in views.batch(step, cams):
+                out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
+                                       vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
+                band = boundary_band(vb.masks, band_radius(vb.height, fit_cfg.band_radius_px, fit_cfg.band_reference_height))
+                terms = image_loss(out.color, vb.images, band, background, weights, lpips)
+                for key, value in terms.items():
+                    totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
+        for opt in optimizers:
+            opt.zero_grad(set_to_none=True)
+        totals["total"].backward()
+        for opt in optimizers:
+            opt.step()
+
+        iteration = i + 1
+        wall = wall_before + time.perf_counter() - started
+        row = {"iteration": iteration, "wall_s": round(wall, 3), "lod": lod, "heldout_psnr": "",
+               "loss": float(totals["total"]), "l1": float(totals["l1"]), "ssim": float(totals["ssim"]),
+               "lpips": float(totals["lpips"]) if "lpips" in totals else ""}
+        if iteration % fit_cfg.eval_every == 0 or iteration == fit_cfg.iterations:
+            row["heldout_psnr"] = held_out.psnr(model, raster)
+            progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}")
+        rows.append(row)
+        if iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes:
+            checkpoint(state_path, iteration, wall)
+            last_save = time.perf_counter()
+        if on_iteration is not None:
+            on_iteration(iteration)
+
+    wall = wall_before + time.perf_counter() - started
+    checkpoint(avatar_path, fit_cfg.iterations, wall)
+    _plot_log(output_dir / "train_log.png", rows)
+    state_path.unlink(missing_ok=True)
+    return avatar_path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pig.stages.fit", description=__doc__.split("\n")[0])
+    parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory (results/.../capture)")
+    parser.add_argument("--output", type=Path, required=True, help="variant directory; gets avatar.pt, train_log.csv/.png")
+    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
+    parser.add_argument("--variant", default="pig", help="method variant from the profile's `variants` section")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
+    args = parser.parse_args(argv)
+    path = fit(args.capture, args.output, args.profile, args.variant, args.device)
+    print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
