@@ -67,10 +67,11 @@ def lattice_laplacian_apply(x: torch.Tensor) -> torch.Tensor:
     """L x on the last three axes: sum over the 6 neighbours of (x_i - x_j), free boundary."""
     out = torch.zeros_like(x)
     for dim in (-3, -2, -1):
+        if x.shape[dim] == 1:  # no edges along this axis
+            continue
         diff = x.diff(dim=dim)  # x_{i+1} - x_i along `dim`
-        pad_front = torch.cat([torch.zeros_like(diff.narrow(dim, 0, 1)), diff], dim=dim)
-        pad_back = torch.cat([diff, torch.zeros_like(diff.narrow(dim, 0, 1))], dim=dim)
-        out = out + pad_front - pad_back
+        zero = torch.zeros_like(diff.narrow(dim, 0, 1))
+        out = out + torch.cat([zero, diff], dim=dim) - torch.cat([diff, zero], dim=dim)
     return out
 
 
