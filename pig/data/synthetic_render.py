@@ -1,0 +1,92 @@
+"""Ground-truth images of the synthetic subject: Embree ray casting of the posed meshes through distorted pixel rays.
+
+Each hit is shaded Lambertian + ambient with an albedo looked up at the hit's canonical position;
+independent of the project's Gaussian renderer, so it can serve as ground truth for the paper's loss (Eq. 15).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+from .raw import RawCamera
+from .synthetic_rig import pixel_rays
+from .synthetic_texture import ValueNoise, body_albedo, garment_albedo
+
+LIGHTS = (  # (direction towards the light, strength): a key light above front-left and a weak fill
+    (np.array([0.4, 0.8, 0.6]) / np.linalg.norm([0.4, 0.8, 0.6]), 0.75),
+    (np.array([-0.5, 0.3, -0.6]) / np.linalg.norm([-0.5, 0.3, -0.6]), 0.3),
+)
+AMBIENT = 0.3
+
+
+@dataclass
+class SceneAppearance:
+    """What does not change between frames: topology, canonical positions and the material parameters."""
+
+    body_faces: np.ndarray  # (F, 3)
+    garment_faces: np.ndarray  # (Fg, 3), indices into the garment vertices
+    body_canonical: np.ndarray  # (V, 3) rest positions relative to the pelvis joint (texture space)
+    garment_canonical: np.ndarray  # (Vg, 3) rest positions relative to the skirt's waist centre
+    body_palette: np.ndarray  # (4, 3)
+    garment_palette: np.ndarray  # (3, 3)
+    background: np.ndarray  # (2, 3): colour at the top and at the bottom of every image
+    seed: int
+
+    @property
+    def faces(self) -> np.ndarray:
+        return np.concatenate([self.body_faces, self.garment_faces + len(self.body_canonical)])
+
+
+def render_frame(appearance: SceneAppearance, body: np.ndarray, garment: np.ndarray, cameras: list[RawCamera],
+                 supersample: int = 1):
+    """Yield (camera, rgb (H, W, 3) float in [0, 1], mask (H, W) bool) for each camera, for one posed frame."""
+    vertices = np.concatenate([body, garment])
+    mesh = trimesh.Trimesh(vertices, appearance.faces, process=False)
+    caster = RayMeshIntersector(mesh)
+    normals = np.asarray(mesh.vertex_normals)
+    noise = ValueNoise(appearance.seed)
+    for camera in cameras:
+        origin, directions = pixel_rays(camera, supersample)
+        shape = directions.shape[:-1]
+        directions = directions.reshape(-1, 3)
+        triangle = caster.intersects_first(np.broadcast_to(origin, directions.shape), directions)
+        hit = triangle >= 0
+        colour = np.zeros((len(directions), 3))
+        colour[hit] = _shade(appearance, vertices, normals, triangle[hit], origin, directions[hit], noise)
+        rows = np.linspace(0, 1, camera.height)[:, None, None, None]
+        background = appearance.background[0] * (1 - rows) + appearance.background[1] * rows
+        colour = np.where(hit.reshape(shape)[..., None], colour.reshape(shape + (3,)), background)
+        coverage = hit.reshape(shape).mean(axis=-1)
+        yield camera, np.clip(colour.mean(axis=2), 0, 1), coverage >= 0.5
+
+
+def _shade(appearance, vertices, normals, triangle, origin, directions, noise) -> np.ndarray:
+    corners = vertices[appearance.faces[triangle]]  # (n, 3, 3)
+    # Ray-plane intersection gives the exact hit on the triangle Embree reported.
+    face_normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    depth = np.einsum("ij,ij->i", face_normal, corners[:, 0] - origin) / np.einsum("ij,ij->i", face_normal, directions)
+    points = origin + depth[:, None] * directions
+    bary = trimesh.triangles.points_to_barycentric(corners, points)
+    corner_ids = appearance.faces[triangle]
+    normal = np.einsum("ij,ijk->ik", bary, normals[corner_ids])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    # Two-sided: the inside of the skirt is seen through its open hem.
+    normal *= -np.sign(np.einsum("ij,ij->i", normal, directions))[:, None]
+    light = np.full(len(points), AMBIENT)
+    for direction, strength in LIGHTS:
+        light += strength * np.maximum(normal @ direction, 0.0)
+
+    num_body = len(appearance.body_canonical)
+    on_body = triangle < len(appearance.body_faces)
+    albedo = np.empty((len(points), 3))
+    body_ids = corner_ids[on_body]
+    canonical = np.einsum("ij,ijk->ik", bary[on_body], appearance.body_canonical[body_ids])
+    albedo[on_body] = body_albedo(canonical, noise, appearance.body_palette)
+    garment_ids = corner_ids[~on_body] - num_body
+    gb = bary[~on_body]
+    canonical = np.einsum("ij,ijk->ik", gb, appearance.garment_canonical[garment_ids])
+    albedo[~on_body] = garment_albedo(canonical, noise, appearance.garment_palette)
+    return albedo * light[:, None]
