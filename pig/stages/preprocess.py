@@ -217,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         split_cfg = load_section(dataset, "split", SplitConfig)
         split_source = f"{dataset.get('_path', 'default split')}: section 'split'"
         fmt = args.format or dataset.get("format") or "thuman4"
+        capture_format(fmt).required_files(args.input)  # a missing root says where the data goes, before anything else
         body_model = resolve_body_model(args.body_model or dataset.get("body_model"), args.input)
         options = {"body_model": body_model} if capture_format(fmt).needs_body_model else {}
         raw = open_capture(fmt, args.input, **options)

@@ -1,0 +1,191 @@
+"""Preprocessed-capture loader: reads back what preprocess wrote (checked against OpenCV's own undistortion),
+caches decoded frames, and names the file on every malformed input."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from thuman4_fixture import write_thuman4
+
+from pig.body.model import BodyModel
+from pig.body.params import from_thuman
+from pig.data.capture import Capture
+from pig.data.raw import CaptureError
+from pig.data.rectify import scaled_intrinsics
+from pig.data.thuman4 import Thuman4Capture
+from pig.stages.preprocess import main
+
+
+@pytest.fixture(scope="module")
+def preprocessed(tmp_path_factory):
+    """Raw tiny subject (cam01 frame 3 listed missing) and its preprocessed capture at scale 0.5 on white."""
+    tmp = tmp_path_factory.mktemp("capture")
+    raw = write_thuman4(tmp / "raw", cameras=3, frames=4, width=192, height=160, ext="png",
+                        missing=["images\\cam01\\00000003.png"])
+    profile = tmp / "profile.yaml"
+    profile.write_text("preprocess:\n  scale: 0.5\n  background: [1.0, 1.0, 1.0]\n")
+    dataset = tmp / "dataset.yaml"
+    dataset.write_text("name: tiny\nsplit:\n  novel_view_cameras: [cam02]\n  novel_pose_frames: [3, 3]\n")
+    assert main(["--input", str(raw), "--output", str(tmp / "out"), "--profile", str(profile),
+                 "--dataset", str(dataset), "--no-progress"]) == 0
+    return raw, tmp / "out"
+
+
+def test_cameras_params_and_split_round_trip(preprocessed):
+    raw_root, out = preprocessed
+    raw = Thuman4Capture(raw_root)
+    capture = Capture.load(out)
+    assert list(capture.cameras) == ["cam00", "cam01", "cam02"]
+    for name, cam in capture.cameras.items():
+        source = raw.cameras[name]
+        assert (cam.width, cam.height) == (96, 80)
+        expected = source.K.copy()
+        expected[:2, :2] *= 0.5
+        expected[:2, 2] = (source.K[:2, 2] + 0.5) * 0.5 - 0.5
+        np.testing.assert_allclose(cam.K, expected, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(cam.K, scaled_intrinsics(source.K, 0.5, 0.5))
+        np.testing.assert_array_equal(cam.R, source.R)
+        point = np.array([0.1, -0.3, 0.2])
+        np.testing.assert_allclose((cam.viewmat() @ np.append(point, 1))[:3], source.R @ point + source.T)
+        np.testing.assert_allclose(cam.center, -source.R.T @ source.T)
+    assert capture.frames == [0, 1, 2, 3]
+    reference = from_thuman(dict(np.load(raw_root / "smpl_params.npz")), "ref")
+    np.testing.assert_array_equal(capture.params.full_pose, reference.full_pose)
+    np.testing.assert_array_equal(capture.params.transl, reference.transl)
+    np.testing.assert_array_equal(capture.params.betas, reference.betas)
+    assert capture.frame_index(2) == 2
+    assert capture.split == {"train": {"cameras": ["cam00", "cam01"], "frames": [0, 1, 2]},
+                             "novel_view": {"cameras": ["cam02"], "frames": [0, 1, 2]},
+                             "novel_pose": {"cameras": ["cam00", "cam01", "cam02"], "frames": [3]}}
+    assert not capture.has("cam01", 3) and capture.has("cam00", 3)
+    assert capture.views("novel_pose") == [("cam00", 3), ("cam02", 3)]
+    model = capture.body_model()
+    assert isinstance(model, BodyModel)
+    np.testing.assert_array_equal(model.faces.numpy(), np.load(raw_root / "body_model.npz")["f"])
+    np.testing.assert_allclose(capture.background, [1, 1, 1])
+
+
+def test_images_and_masks_match_opencv_undistort_then_area_resize(preprocessed):
+    """Reference: cv2.undistort (its own maps) + binarise + composite + INTER_AREA, computed here independently."""
+    raw_root, out = preprocessed
+    raw = Thuman4Capture(raw_root)
+    capture = Capture.load(out)
+    for cam, frame in (("cam00", 0), ("cam02", 3)):
+        source = raw.cameras[cam]
+        image = cv2.undistort(raw.read_image(cam, frame), source.K, source.dist)
+        matte = cv2.undistort(raw.read_mask(cam, frame), source.K, source.dist)
+        white = np.where((matte > 128)[..., None], image, 255).astype(np.uint8)
+        small = cv2.resize(white, (96, 80), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+        mask = capture.mask(cam, frame)
+        reference_mask = cv2.resize((matte > 128).astype(np.float32), (96, 80), interpolation=cv2.INTER_AREA) >= 0.5
+        # Bilinear vs nearest resampling of the matte may flip boundary pixels only.
+        assert np.count_nonzero(mask != reference_mask) <= 0.1 * np.count_nonzero(reference_mask)
+        assert mask.sum() > 50
+        got = capture.image(cam, frame)
+        assert got.dtype == np.float32 and got.shape == (80, 96, 3)
+        both = mask & reference_mask
+        inner = cv2.erode(both.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        np.testing.assert_allclose(got[inner], small[inner], atol=3 / 255)
+        np.testing.assert_array_equal(got[~mask], 1.0)  # composited on the configured white
+        black = capture.image(cam, frame, background=(0, 0, 0))
+        np.testing.assert_array_equal(black[~mask], 0.0)
+        np.testing.assert_array_equal(black[mask], got[mask])
+
+
+def test_decoded_frames_are_cached_within_the_budget(preprocessed, tmp_path):
+    _, out = preprocessed
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    capture = Capture.load(copy)
+    first = capture.image("cam00", 1)
+    capture.preload(workers=2)
+    shutil.rmtree(copy / "images")  # from now on only the cache can answer
+    np.testing.assert_array_equal(capture.image("cam00", 1), first)
+    assert capture.mask("cam02", 3).any()
+    small = Capture.load(out, cache_mb=30_000 / 2**20)  # room for about one 96x80 RGB frame and a mask
+    for cam, frame in small.views("train"):
+        small.image(cam, frame)
+        small.mask(cam, frame)
+    assert small._cache_bytes <= 30_000
+    fresh = Capture.load(out)
+    np.testing.assert_array_equal(small.image("cam00", 0), fresh.image("cam00", 0))  # evicted, read again
+
+
+def _broken(out, tmp_path, edit):
+    copy = tmp_path / "broken"
+    shutil.copytree(out, copy)
+    edit(copy)
+    return copy
+
+
+def _edit_json(name, change):
+    def edit(root):
+        data = json.loads((root / name).read_text())
+        change(data)
+        (root / name).write_text(json.dumps(data))
+    return edit
+
+
+BAD = {
+    "no cameras.json": (lambda r: (r / "cameras.json").unlink(), r"cameras\.json: file not found"),
+    "cameras.json garbage": (lambda r: (r / "cameras.json").write_text("{"), r"cameras\.json: not valid JSON"),
+    "K of 2x3": (_edit_json("cameras.json", lambda d: d["cam01"].__setitem__("K", [[1, 0, 0], [0, 1, 0]])),
+                 r"cameras\.json: camera 'cam01' 'K' must be finite with shape \(3, 3\)"),
+    "no width": (_edit_json("cameras.json", lambda d: d["cam00"].pop("width")), r"camera 'cam00' must have keys"),
+    "no smplx.npz": (lambda r: (r / "smplx.npz").unlink(), r"smplx\.npz: body parameter file not found"),
+    "split unknown camera": (_edit_json("split.json", lambda d: d["train"]["cameras"].append("cam07")),
+                             r"split\.json: split 'train' names camera\(s\) \['cam07'\] not in cameras\.json"),
+    "split unknown frame": (_edit_json("split.json", lambda d: d["novel_pose"]["frames"].append(9)),
+                            r"split\.json: split 'novel_pose' names frame\(s\) \[9\] that smplx\.npz has no parameters"),
+    "split without novel_view": (_edit_json("split.json", lambda d: d.pop("novel_view")),
+                                 r"split\.json: expected 'novel_view'"),
+    "no report.json": (lambda r: (r / "report.json").unlink(), r"report\.json: file not found"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_malformed_capture_fails_naming_the_file(preprocessed, tmp_path, case):
+    edit, message = BAD[case]
+    with pytest.raises(CaptureError, match=message):
+        Capture.load(_broken(preprocessed[1], tmp_path, edit))
+
+
+def test_bad_frame_access_names_the_file(preprocessed, tmp_path):
+    with pytest.raises(CaptureError, match=r"capture .*nothing not found \(run the preprocess stage"):
+        Capture.load(tmp_path / "nothing")
+    copy = _broken(preprocessed[1], tmp_path, lambda r: (r / "images" / "cam00" / "00000002.png").write_bytes(b"x"))
+    capture = Capture.load(copy)
+    with pytest.raises(CaptureError, match=r"images/cam00/00000002\.png: missing or not a readable PNG"):
+        capture.image("cam00", 2)
+    with pytest.raises(CaptureError, match=r"images/cam01/00000003\.png: not in the capture"):
+        capture.image("cam01", 3)
+    with pytest.raises(CaptureError, match=r"unknown camera 'cam9'"):
+        capture.mask("cam9", 0)
+    with pytest.raises(CaptureError, match=r"no split 'test'"):
+        capture.views("test")
+    with pytest.raises(CaptureError, match=r"no parameters for frame 7"):
+        capture.frame_index(7)
+    cv2.imwrite(str(copy / "masks" / "cam00" / "00000001.png"), np.zeros((10, 10), np.uint8))
+    with pytest.raises(CaptureError, match=r"masks/cam00/00000001\.png: image is 10x10, cameras\.json says 96x80"):
+        capture.mask("cam00", 1)
+
+
+def test_body_model_poses_onto_the_masks(preprocessed):
+    """The saved parameters and body model reproduce the check: the posed body projects inside the masks."""
+    capture = Capture.load(preprocessed[1])
+    model = capture.body_model().to(torch.float64)
+    p = capture.params
+    with torch.no_grad():
+        vertices = model(torch.from_numpy(p.full_pose), torch.from_numpy(p.betas), torch.from_numpy(p.expression),
+                         torch.from_numpy(p.transl)).vertices.numpy()
+    for cam, frame in capture.views("train") + capture.views("novel_pose"):
+        c = capture.cameras[cam]
+        uvz = (vertices[capture.frame_index(frame)] @ c.R.T + c.T) @ c.K.T
+        uv = np.round(uvz[:, :2] / uvz[:, 2:]).astype(int)
+        mask = cv2.dilate(capture.mask(cam, frame).astype(np.uint8), np.ones((3, 3), np.uint8))
+        assert mask[uv[:, 1], uv[:, 0]].mean() > 0.98

@@ -1,0 +1,255 @@
+"""Preprocess stage: geometry survives undistortion + resize, the projection check tells good from swapped
+cameras, protocol splits, bad input fails cleanly and nothing is left half-written."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from thuman4_fixture import look_at, write_thuman4
+
+from pig.config import load_section, load_yaml
+from pig.data.capture import Capture
+from pig.data.projection_check import View, overlap_counts, silhouette
+from pig.data.raw import CaptureError
+from pig.data.splits import SplitConfig, make_split
+from pig.data.thuman4 import Thuman4Capture
+from pig.stages.preprocess import PreprocessConfig, main, preprocess_capture
+
+REPO = Path(__file__).resolve().parent.parent
+NO_HOLDOUT = SplitConfig(novel_view_count=0, novel_pose_fraction=0.0)
+
+
+def _run(root: Path, out: Path, *extra: str) -> int:
+    return main(["--input", str(root), "--output", str(out), "--profile", "test", "--no-progress", *extra])
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return [p.name for p in folder.iterdir() if p.name.startswith(".")]
+
+
+# -- geometry: a known 3D point lands on the same image content before and after ---------------------------------
+
+def _blob_subject(root: Path, points_cam: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One strongly distorted camera; image = Gaussian blobs drawn at cv2.projectPoints (with distortion) of points."""
+    width, height = 320, 240
+    write_thuman4(root, cameras=1, frames=1, width=width, height=height, ext="png")
+    K = np.array([[262.0, 0.0, 161.3], [0.0, 259.0, 118.6], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.01])
+    R, T = look_at(np.array([0.4, 0.5, 3.0]))
+    points = (points_cam - T) @ R  # camera -> world: R^T (x - T)
+    uv = cv2.projectPoints(points, cv2.Rodrigues(R)[0], T, K, dist)[0][:, 0]
+    ys, xs = np.mgrid[:height, :width]
+    image = sum(np.exp(-((xs - u) ** 2 + (ys - v) ** 2) / (2 * sigma**2)) for u, v in uv)
+    cv2.imwrite(str(root / "images" / "cam00" / "00000000.png"), np.round(255 * np.dstack([image] * 3)).astype(np.uint8))
+    cv2.imwrite(str(root / "masks" / "cam00" / "00000000.png"), np.full((height, width), 255, np.uint8))
+    calibration = {"cam00": {"K": K.tolist(), "R": R.tolist(), "T": T.tolist(), "imgSize": [width, height],
+                             "distCoeff": dist.tolist()}}
+    (root / "calibration.json").write_text(json.dumps(calibration))
+    return points, uv, K
+
+
+def _centroid(gray: np.ndarray, u: float, v: float, radius: int) -> np.ndarray:
+    u0, v0 = int(round(u)), int(round(v))
+    window = gray[v0 - radius:v0 + radius + 1, u0 - radius:u0 + radius + 1]
+    ys, xs = np.mgrid[v0 - radius:v0 + radius + 1, u0 - radius:u0 + radius + 1]
+    return np.array([(window * xs).sum(), (window * ys).sum()]) / window.sum()
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5, 0.37])
+def test_known_point_projects_to_the_blob_after_undistort_and_resize(tmp_path, scale):
+    # Normalised image coordinates from the centre to the corners, where the distortion is several pixels.
+    directions = np.array([[0.0, 0.0], [-0.48, -0.34], [0.5, -0.32], [-0.46, 0.36], [0.47, 0.35], [0.25, -0.1]])
+    depth = np.array([3.0, 2.6, 3.4, 2.8, 3.2, 3.6])
+    points_cam = np.column_stack([directions * depth[:, None], depth])
+    sigma = 2.5
+    points, raw_uv, K = _blob_subject(tmp_path / "raw", points_cam, sigma)
+    cfg = PreprocessConfig(scale=scale, min_iou=0.0, workers=1)
+    preprocess_capture(Thuman4Capture(tmp_path / "raw"), tmp_path / "out", cfg, tmp_path / "raw" / "body_model.npz",
+                       NO_HOLDOUT, "s", progress=False)
+    capture = Capture.load(tmp_path / "out")
+    cam = capture.cameras["cam00"]
+    assert (cam.width, cam.height) == (round(320 * scale), round(240 * scale))
+    gray = capture.image("cam00", 0).mean(axis=2).astype(np.float64)
+    projected = (points @ cam.R.T + cam.T) @ cam.K.T
+    pinhole = projected[:, :2] / projected[:, 2:]
+    radius = int(np.ceil(4 * sigma * scale)) + 1
+    found = np.array([_centroid(gray, u, v, radius) for u, v in pinhole])
+    np.testing.assert_array_less(np.linalg.norm(found - pinhole, axis=1), 0.5)
+    # The test can fail: without undistortion the corner blobs would sit pixels away from the pinhole projection.
+    ideal = (points @ cam.R.T + cam.T) @ K.T
+    assert np.linalg.norm(raw_uv - ideal[:, :2] / ideal[:, 2:], axis=1).max() * scale > 3.0
+
+
+# -- projection check -----------------------------------------------------------------------------------------
+
+def test_silhouette_covers_exactly_the_pixels_inside_projected_triangles(rng):
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
+    vertices = mesh.vertices * [1.0, 1.6, 0.7] + [0.05, -0.1, 0.0]
+    R, T = look_at(np.array([0.3, 0.2, 2.5]))
+    view = View(np.array([[70.0, 0, 31.7], [0, 72.0, 30.2], [0, 0, 1]]), R, T, 64, 60)
+    filled = silhouette(vertices, mesh.faces, view)
+    # Reference: float64 point-in-triangle test of every pixel centre against every projected triangle.
+    cam = vertices @ R.T + T
+    uv = (cam @ view.K.T)[:, :2] / cam[:, 2:]
+    a, b, c = (uv[mesh.faces[:, i]][:, None] for i in range(3))
+    ys, xs = np.mgrid[:60, :64]
+    p = np.stack([xs.ravel(), ys.ravel()], axis=1)[None].astype(np.float64)
+
+    def cross(o, d, q):
+        return (d[..., 0] - o[..., 0]) * (q[..., 1] - o[..., 1]) - (d[..., 1] - o[..., 1]) * (q[..., 0] - o[..., 0])
+
+    s1, s2, s3 = cross(a, b, p), cross(b, c, p), cross(c, a, p)
+    inside = ((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))
+    reference = inside.any(axis=0).reshape(60, 64)
+    assert reference.sum() > 500
+    assert np.all(filled[reference])  # every covered pixel centre is filled
+    grown = cv2.dilate(reference.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    assert np.all(grown[filled])  # and nothing farther than a pixel from the covered centres
+
+
+def test_tolerant_iou_of_concentric_discs_matches_the_closed_form():
+    ys, xs = np.mgrid[:201, :361]
+    r = np.hypot(xs - 100, ys - 100)
+    body, mask = r <= 40, r <= 60
+    raw = overlap_counts(body, mask, 0.0)
+    assert raw[0] / raw[1] == pytest.approx(40**2 / 60**2, rel=0.02)
+    assert raw[2] / raw[1] == pytest.approx(raw[0] / raw[1])  # no tolerance: the plain IoU
+    half = overlap_counts(body, mask, 10.0)  # forgives the annulus 40 < r <= 50 of the mask
+    assert half[2] / half[1] == pytest.approx(1 - (60**2 - 50**2) / 60**2, rel=0.02)
+    assert overlap_counts(body, mask, 20.5)[2] == overlap_counts(body, mask, 20.5)[1]
+    apart = np.hypot(xs - 230, ys - 100) <= 40  # 30 px gap: a smaller tolerance forgives nothing
+    assert overlap_counts(apart, mask, 15.0)[2] == 0 and overlap_counts(apart, mask, 15.0)[1] > 0
+
+
+def test_good_capture_passes_and_camera_to_world_calibration_is_named(tmp_path, capsys):
+    good = write_thuman4(tmp_path / "good", cameras=4, frames=4, width=192, height=160)
+    assert _run(good, tmp_path / "out_good") == 0
+    check = json.loads((tmp_path / "out_good" / "report.json").read_text())["projection_check"]
+    assert check["passed"] and all(c["iou"] >= 0.9 and c["raw_iou"] > 0.8 for c in check["cameras"].values())
+
+    swapped = write_thuman4(tmp_path / "swapped", cameras=4, frames=4, width=192, height=160, camera_to_world=True)
+    capsys.readouterr()
+    assert _run(swapped, tmp_path / "out_swapped") == 1
+    err = capsys.readouterr().err
+    assert "calibration looks camera-to-world; invert it" in err and "cam00" in err
+    assert not (tmp_path / "out_swapped").exists() and _leftovers(tmp_path) == []
+
+
+def test_body_parameters_that_miss_the_masks_fail_with_the_general_message(tmp_path, capsys):
+    root = write_thuman4(tmp_path / "s", cameras=3, frames=3, width=192, height=160)
+    arrays = dict(np.load(root / "smpl_params.npz"))
+    arrays["transl"] = arrays["transl"] + [0.6, 0.0, 0.0]  # body beside the person the masks show
+    np.savez(root / "smpl_params.npz", **arrays)
+    assert _run(root, tmp_path / "out") == 1
+    err = capsys.readouterr().err
+    assert "cameras and the body parameters disagree" in err and "camera-to-world" not in err
+    assert not (tmp_path / "out").exists()
+
+
+# -- atomic output and bad input ------------------------------------------------------------------------------
+
+def test_failed_rerun_keeps_the_previous_output_intact(tmp_path, capsys):
+    root = write_thuman4(tmp_path / "s", cameras=3, frames=3)
+    out = tmp_path / "out"
+    assert _run(root, out) == 0
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    (root / "images" / "cam01" / "00000002.jpg").write_bytes(b"broken")
+    assert _run(root, out) == 1
+    assert "images/cam01/00000002.jpg: cannot decode the image" in capsys.readouterr().err
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before and _leftovers(tmp_path) == []
+    (root / "images" / "cam01" / "00000002.jpg").unlink()
+    (root / "missing_img_files.txt").write_text("images\\cam01\\00000002.jpg\n")
+    assert _run(root, out) == 0  # a later good run replaces it
+    assert not (out / "images" / "cam01" / "00000002.png").exists() and (out / "images" / "cam00" / "00000002.png").exists()
+    assert _leftovers(tmp_path) == []
+
+
+def _dataset_yaml(tmp_path, text: str) -> str:
+    path = tmp_path / "dataset.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+BAD_RUNS = {
+    "split names an unknown camera": (
+        lambda t, r: ["--dataset", _dataset_yaml(t, "name: x\nsplit:\n  novel_view_cameras: [cam09]\n")],
+        r"dataset\.yaml: section 'split': 'novel_view_cameras' names camera\(s\) \['cam09'\] that are not in the calibration"),
+    "no body model": (lambda t, r: (r / "body_model.npz").unlink() or [],
+                      r"no body model for .*SMPLX_NEUTRAL\.npz .*--body-model"),
+    "body model path absent": (lambda t, r: ["--body-model", str(t / "SMPLX_NEUTRAL.npz")],
+                               r"body model .*SMPLX_NEUTRAL\.npz does not exist"),
+    "NaN in parameters": (
+        lambda t, r: np.savez(r / "smpl_params.npz", **{**dict(np.load(r / "smpl_params.npz")),
+                                                         "global_orient": np.full((3, 3), np.nan)}) or [],
+        r"smpl_params\.npz: 'global_orient' contains NaN"),
+    "frame counts disagree": (lambda t, r: (r / "masks" / "cam00" / "00000001.jpg").unlink() or [],
+                              r"masks/cam00: 1 of the 3 frames in smpl_params\.npz have no file"),
+    "missing root": (lambda t, r: ["--input", str(t / "absent")], r"absent not found: put the subject there"),
+    "unknown profile key": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  scael: 2\n")],
+                            r"section 'preprocess': unknown key\(s\) \['scael'\]"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_RUNS))
+def test_bad_input_exits_with_a_message_and_writes_nothing(tmp_path, capsys, case):
+    root = write_thuman4(tmp_path / "s", cameras=3, frames=3)
+    make_args, message = BAD_RUNS[case]
+    extra = make_args(tmp_path, root)
+    args = ["--input", str(root), "--output", str(tmp_path / "out"), "--profile", "test", "--no-progress", *extra]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert re.search(message, err), err
+    assert not (tmp_path / "out").exists() and _leftovers(tmp_path) == []
+
+
+# -- protocol splits ------------------------------------------------------------------------------------------
+
+def _split_config(name: str) -> SplitConfig:
+    data = load_yaml(REPO / "config" / "datasets" / f"{name}.yaml")
+    return load_section(data, "split", SplitConfig)
+
+
+def test_thuman4_protocol():
+    cams = [f"cam{i:02d}" for i in range(24)]
+    split = make_split(cams, list(range(2500)), _split_config("thuman4"), "subject00")
+    assert split["train"]["cameras"] == [c for c in cams[:23] if c != "cam07"]
+    assert split["train"]["frames"] == list(range(2000))
+    assert split["novel_view"] == {"cameras": ["cam23"], "frames": list(range(2000))}
+    assert split["novel_pose"] == {"cameras": cams, "frames": list(range(2000, 2500))}
+    other = make_split(cams, list(range(5060)), _split_config("thuman4"), "subject01")
+    assert other["train"]["cameras"] == cams[:23] and other["novel_pose"]["frames"] == list(range(2000, 2500))
+
+
+def test_synthetic_and_dna_protocols():
+    cams = [f"cam{i:02d}" for i in range(12)]
+    split = make_split(cams, list(range(24)), _split_config("synthetic"), "subject00")
+    assert split["novel_view"]["cameras"] == ["cam03", "cam09"]
+    assert split["train"]["cameras"] == [c for c in cams if c not in ("cam03", "cam09")]
+    assert split["train"]["frames"] == list(range(18)) and split["novel_pose"]["frames"] == list(range(18, 24))
+    assert split["novel_pose"]["cameras"] == cams and split["novel_view"]["frames"] == split["train"]["frames"]
+    dna = make_split([str(i) for i in range(60)], list(range(150)), _split_config("dna"), "0165_01")
+    assert dna["train"]["cameras"] == [str(i) for i in range(48)]
+    assert dna["novel_view"]["cameras"] == [str(i) for i in range(48, 60)]
+    assert dna["train"]["frames"] == list(range(120)) and dna["novel_pose"]["frames"] == list(range(120, 150))
+
+
+@pytest.mark.parametrize("cfg, message", [
+    (SplitConfig(novel_pose_cameras=["cam1", "cam7"]), r"'novel_pose_cameras' names camera\(s\) \['cam7'\]"),
+    (SplitConfig(drop_train_cameras={"s": ["x"]}), r"'drop_train_cameras\.s' names camera\(s\) \['x'\]"),
+    (SplitConfig(train_frames=[0, 5], novel_pose_frames=[5, 9]), r"train and novel-pose frames overlap \(first: \[5\]\)"),
+    (SplitConfig(novel_pose_frames=[20, 30]), r"'novel_pose_frames' \[20, 30\] contains none of the capture's frames \(0\.\.9\)"),
+    (SplitConfig(train_frames=[5, 1]), r"'train_frames' must be \[first, last\]"),
+    (SplitConfig(novel_view_count=4), r"'novel_view_count' 4 must leave at least one of the 4 cameras"),
+    (SplitConfig(novel_view_count=0, drop_train_cameras={"s": ["cam0", "cam1", "cam2", "cam3"]}), r"train split is empty"),
+])
+def test_split_errors(cfg, message):
+    with pytest.raises(CaptureError, match=message):
+        make_split([f"cam{i}" for i in range(4)], list(range(10)), cfg, "s", "where.yaml")
