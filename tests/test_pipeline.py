@@ -38,7 +38,7 @@ def _summary(root: Path, subject: str, variant: str, split: str, lod: int, psnr:
     path.parent.mkdir(parents=True, exist_ok=True)
     data = {"split": split, "lod": lod, "images": 4, "psnr": psnr, "ssim": 0.9, "lpips": math.nan, "fid": math.nan,
             "psnr_blank": 10.0, "ssim_blank": 0.5, "lpips_note": "LPIPS weights missing",
-            "fid_note": "FID needs >= 2000 images per set, have 4", "splats": 100 * 2**lod,
+            "fid_note": "FID is NaN: needs >= 2000 images per set, have 4", "splats": 100 * 2**lod,
             "model_mb": 1.0 + lod, "fps": 50.0 / (lod + 1), "device": "CPU x86_64 (2 threads)", **extra}
     path.write_text(json.dumps(data))
     return path
@@ -77,7 +77,7 @@ def test_tables_layout_and_means(tmp_path):
     assert lod["psnr"].tolist() == pytest.approx([31.0, 32.0, 26.0, 27.0])
     assert {"mb", "fps", "device"} <= set(lod.columns)
     markdown = (out / "synthetic.md").read_text()
-    assert "| pig |" in markdown and "n/a" in markdown and "- n/a: FID needs >= 2000 images" in markdown
+    assert "| pig |" in markdown and "n/a" in markdown and "- FID is NaN: needs >= 2000 images" in markdown
     assert (out / "synthetic_training.png").stat().st_size > 1000
 
 

@@ -63,7 +63,7 @@ def fid_from_features(a: np.ndarray, b: np.ndarray, min_images: int = DEFAULT_MI
     """(FID, reason) of two feature sets (N, D); NaN with the reason when either set is too small."""
     smallest = min(len(a), len(b))
     if smallest < max(min_images, 2):
-        return math.nan, f"FID needs >= {min_images} images per set, have {smallest}"
+        return math.nan, f"FID is NaN: needs >= {min_images} images per set, have {smallest}"
     return frechet_distance(*feature_statistics(a), *feature_statistics(b)), ""
 
 

@@ -60,7 +60,8 @@ def _load_metric(build, what: str) -> tuple[torch.nn.Module | None, str]:
         return build(), ""
     except WeightsMissing as err:
         print(f"[evaluate] {what} is NaN: {err}")
-        return None, f"{what} weights missing"
+        # The table's note names the file; the full search path list stays in the log.
+        return None, f"{what} is NaN: {str(err).split(' (searched')[0]}"
 
 
 def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lpips_net, inception, device):
@@ -96,8 +97,9 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
     return table, summary, fake_features, real_features
 
 
-def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig) -> list[Path]:
-    """Evaluate every LOD rendered under `split_dir`; returns the CSV paths written."""
+def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig,
+                   levels: list[int] | None = None) -> list[Path]:
+    """Evaluate the given LODs (default: every LOD rendered under `split_dir`); returns the CSV paths written."""
     from pig.data.capture import Capture
 
     capture = Capture.load(capture_dir)
@@ -109,12 +111,16 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights).to(device), "LPIPS")
     if images < cfg.fid_min_images:
         # Not worth loading Inception: the set is too small for a meaningful FID anyway.
-        inception, fid_note = None, f"FID needs >= {cfg.fid_min_images} images per set, have {images}"
+        inception, fid_note = None, f"FID is NaN: needs >= {cfg.fid_min_images} images per set, have {images}"
         print(f"[evaluate] FID is NaN: {fid_note}")
     else:
         inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
     written = []
-    for level in render_levels(split_dir):
+    rendered = render_levels(split_dir)
+    missing = sorted(set(levels or []) - set(rendered))
+    if missing:
+        raise FileNotFoundError(f"{split_dir}: LOD(s) {missing} were not rendered; found lod{rendered}")
+    for level in levels if levels is not None else rendered:
         level_dir = split_dir / f"lod{level}"
         table, summary, fake, real = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device)
         fid, note = math.nan, fid_note
@@ -143,10 +149,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--renders", type=Path, required=True, help="renders/{split} directory of the render stage")
     parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"])
     parser.add_argument("--output", type=Path, required=True, help="metrics directory ({split}_lod{l}.csv/.json go here)")
+    parser.add_argument("--lod", type=int, nargs="*", default=None, help="levels to evaluate (default: all rendered)")
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
     args = parser.parse_args(argv)
     cfg = load_section(load_profile(args.profile), "evaluate", EvaluateConfig)
-    evaluate_split(args.capture, args.renders, args.split, args.output, cfg)
+    evaluate_split(args.capture, args.renders, args.split, args.output, cfg, args.lod)
     return 0
 
 

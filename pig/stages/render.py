@@ -33,11 +33,12 @@ def device_name(device: torch.device) -> str:
 
 
 def model_megabytes(model: torch.nn.Module, num_anchors: int, level_size: int) -> float:
-    """Parameters and buffers a renderer of one LOD holds: per-anchor tensors (leading dim = N)
-    count only the level's anchors, everything else (grid, decoders, body) in full. The per-frame
-    body parameters of the training sequence are included; they are what gamma(t) indexes."""
-    total = 0
-    tensors = {id(t): t for t in [*model.parameters(), *model.buffers()]}.values()
+    """Memory of the avatar a renderer of one LOD holds: per-anchor tensors (leading dim = N) count
+    only the level's anchors, everything else (grid, decoders, refiner, per-frame parameters) in full.
+    The body model is excluded: it is the shared SMPL-X file, not part of the fitted avatar."""
+    shared = {id(t) for t in [*model.body_model.parameters(), *model.body_model.buffers()]}
+    tensors = {id(t): t for t in [*model.parameters(), *model.buffers()] if id(t) not in shared}.values()
+    total = 0.0
     for tensor in tensors:
         share = level_size / num_anchors if tensor.dim() and tensor.shape[0] == num_anchors else 1.0
         total += tensor.numel() * tensor.element_size() * share

@@ -70,7 +70,7 @@ def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
         rows_split = finest[finest["split"] == split]
         blank.update({f"{split}_psnr": rows_split["psnr_blank"].mean(), f"{split}_ssim": rows_split["ssim_blank"].mean(),
                       f"{split}_lpips": math.nan, f"{split}_fid": math.nan})
-    blank.update(splats=0, notes="reference: all-black render")
+    blank.update(splats=0, notes=f"{BLANK_ROW}: an all-black render scored like the methods; LPIPS and FID not computed for it")
     rows.append(blank)
     return pd.DataFrame(rows)
 
@@ -97,7 +97,7 @@ def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_
 
 
 def to_markdown(table: pd.DataFrame, title: str) -> str:
-    """A GitHub Markdown table; NaN prints as 'n/a' and the notes column becomes footnotes."""
+    """A GitHub Markdown table; NaN prints as 'n/a' and the notes column becomes a list below it."""
     notes = sorted({n for cell in table.get("notes", []) for n in str(cell).split("; ") if n})
     shown = table.drop(columns=["notes"], errors="ignore")
 
@@ -111,7 +111,7 @@ def to_markdown(table: pd.DataFrame, title: str) -> str:
     lines = [f"## {title}", "", "| " + " | ".join(shown.columns) + " |", "|" + "---|" * len(shown.columns)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in shown.itertuples(index=False)]
     if notes:
-        lines += [""] + [f"- n/a: {note}" for note in notes]
+        lines += ["", "Notes:", ""] + [f"- {note}" for note in notes]
     return "\n".join(lines) + "\n"
 
 

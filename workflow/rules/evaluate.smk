@@ -1,13 +1,16 @@
 # Render the held-out splits at every level of detail, score them, and build the paper's tables.
 from pig.avatar.config import AvatarConfig
+from pig.avatar.variants import variant_overrides
 from pig.config import load_profile, load_section
 
 SPLITS = ["novel_view", "novel_pose"]
 
 
-def lod_levels():
-    """LOD indices 0..L-1 of the configured profile (section `avatar`, key `levels`)."""
-    return list(range(load_section(load_profile(PROFILE), "avatar", AvatarConfig).levels))
+def lod_levels(variant):
+    """LOD indices 0..L-1 of a variant: the profile's `avatar.levels` after the variant's overrides."""
+    profile = load_profile(PROFILE)
+    overrides = variant_overrides(profile, variant).get("avatar")
+    return list(range(load_section(profile, "avatar", AvatarConfig, overrides).levels))
 
 
 rule render_split:
@@ -39,34 +42,37 @@ rule evaluate:
         renders="results/{dataset}/{subject}/{variant}/renders/{split}",
         capture="results/{dataset}/{subject}/capture/report.json",
     output:
-        csv=expand("results/{{dataset}}/{{subject}}/{{variant}}/metrics/{{split}}_lod{l}.csv", l=lod_levels()),
-        summary=expand("results/{{dataset}}/{{subject}}/{{variant}}/metrics/{{split}}_lod{l}.json", l=lod_levels()),
+        csv="results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.csv",
+        summary="results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json",
     params:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
-        output=lambda wildcards, output: str(Path(output.csv[0]).parent),
+        output=lambda wildcards, output: str(Path(output.csv).parent),
         profile=PROFILE,
     log:
-        "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}.log",
+        "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}_lod{lod}.log",
     benchmark:
-        "results/{dataset}/{subject}/{variant}/benchmarks/evaluate_{split}.tsv"
+        "results/{dataset}/{subject}/{variant}/benchmarks/evaluate_{split}_lod{lod}.tsv"
     wildcard_constraints:
         split="|".join(SPLITS),
+        lod=r"\d+",
     resources:
         gpu=1,
         mem_mb=8000,
         runtime=60,
     shell:
-        "python -m pig.stages.evaluate --capture {params.capture} --renders {input.renders} "
-        "--split {wildcards.split} --output {params.output} --profile {params.profile} > {log} 2>&1"
+        "python -m pig.stages.evaluate --capture {params.capture} --renders {input.renders} --split {wildcards.split} "
+        "--lod {wildcards.lod} --output {params.output} --profile {params.profile} > {log} 2>&1"
 
 
 rule make_tables:
     input:
-        summaries=lambda wildcards: expand(
-            "results/{dataset}/{subject}/{variant}/metrics/{split}_lod{l}.json",
-            dataset=wildcards.dataset, subject=subjects(wildcards.dataset), variant=config["variants"],
-            split=SPLITS, l=lod_levels(),
-        ),
+        summaries=lambda wildcards: [
+            f"results/{wildcards.dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json"
+            for subject in subjects(wildcards.dataset)
+            for variant in config["variants"]
+            for split in SPLITS
+            for lod in lod_levels(variant)
+        ],
         train_logs=lambda wildcards: expand(
             "results/{dataset}/{subject}/{variant}/train_log.csv",
             dataset=wildcards.dataset, subject=subjects(wildcards.dataset), variant=config["variants"],
