@@ -396,6 +396,25 @@ def _thuman4_as_dna(tmp_path) -> tuple[Path, Path, "Thuman4Capture"]:
     return tmp_path / "dna" / "0001_01", model_path, source
 
 
+def test_writer_cli_exports_a_thuman4_subject(tmp_path, capsys):
+    from thuman4_fixture import write_thuman4
+
+    from pig.data.smc_writer import main
+    from pig.data.thuman4 import Thuman4Capture
+
+    raw = write_thuman4(tmp_path / "raw", cameras=3, frames=2, width=48, height=40, ext="png")
+    main(["--format", "thuman4", "--input", str(raw), "--output", str(tmp_path / "out"), "--sequence", "0100_02"])
+    assert capsys.readouterr().out.split() == [str(tmp_path / "out" / "0100_02.smc"),
+                                               str(tmp_path / "out" / "annotations" / "0100_02_annots.smc")]
+    source = Thuman4Capture(raw)
+    with DnaCapture(tmp_path / "out", body_model=raw / "body_model.npz") as dna:
+        np.testing.assert_array_equal(dna.read_image("2", 1), source.read_image("cam02", 1))
+        np.testing.assert_allclose(dna.params.transl, source.params.transl, atol=1e-12)
+    with pytest.raises(SystemExit):
+        main(["--format", "thuman4", "--input", str(tmp_path / "absent"), "--output", str(tmp_path / "x")])
+    assert "body model" in capsys.readouterr().err
+
+
 @pytest.fixture(scope="module")
 def dna_subject(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("dna_subject")

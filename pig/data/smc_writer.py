@@ -136,13 +136,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--num-5mp", type=int, default=None, help="cameras written to Camera_5mp (default min(C, 48))")
     parser.add_argument("--jpeg", type=int, default=None, metavar="QUALITY", help="encode JPEG instead of PNG")
     args = parser.parse_args(argv)
-    from pig.data.formats import open_capture
+    from pig.data.formats import capture_format, open_capture
 
     body_model = args.body_model or args.input / "body_model.npz"
     if not Path(body_model).is_file():
         parser.error(f"body model {body_model} not found; pass --body-model PATH (SMPL-X npz)")
-    options = {"body_model": body_model} if args.format == "dna" else {}
-    capture = open_capture(args.format, args.input, **options)
+    options = {"body_model": body_model} if capture_format(args.format).needs_body_model else {}
+    try:
+        capture = open_capture(args.format, args.input, **options)
+    except CaptureError as err:
+        parser.exit(1, f"smc_writer: error: {err}\n")
     ext, quality = (".png", 95) if args.jpeg is None else (".jpg", args.jpeg)
     for path in write_smc(capture, args.output, args.sequence, body_model, num_5mp=args.num_5mp,
                           image_ext=ext, jpeg_quality=quality):
