@@ -12,6 +12,7 @@ validate(config, "config/schema/config.schema.yaml")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/data.smk"
 include: "workflow/rules/preprocess.smk"
+include: "workflow/rules/fit.smk"
 include: "workflow/rules/evaluate.smk"
 
 

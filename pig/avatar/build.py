@@ -5,6 +5,9 @@ preconditioned per Eqs. 4-5, decoders (Eqs. 8-9) and refiner (Eq. 13); the paper
 """
 from __future__ import annotations
 
+import io
+
+import numpy as np
 import torch
 
 from pig.body.model import NUM_JOINTS, BodyModel
@@ -26,12 +29,14 @@ def canonical_vertices(body_model: BodyModel, betas) -> torch.Tensor:
 
 
 def build_avatar(spec: dict) -> AvatarModel:
-    """spec: {"avatar", "field", "precond": config dicts, "body_model": npz arrays, "params": SmplxParams
-    fields (training frames, in order), "frame_ids": training frame ids}. Deterministic per spec."""
+    """spec: {"avatar", "field", "precond": config dicts, "body_model_npz": bytes of the body model file,
+    "params": SmplxParams fields (training frames, in order), "frame_ids": training frame ids}.
+    Deterministic per spec."""
     cfg = from_dict(AvatarConfig, spec["avatar"], "avatar spec")
     field_cfg = from_dict(FieldConfig, spec["field"], "field spec")
     precond = from_dict(PrecondConfig, spec["precond"], "precond spec")
-    body_model = BodyModel(spec["body_model"], source="body model of the avatar spec")
+    with np.load(io.BytesIO(spec["body_model_npz"]), allow_pickle=True) as data:
+        body_model = BodyModel({k: data[k] for k in data.files}, source="body model of the avatar spec")
     params = SmplxParams(**spec["params"])
     with torch.no_grad():
         canon = canonical_vertices(body_model, params.betas)

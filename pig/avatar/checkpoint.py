@@ -18,7 +18,7 @@ FORMAT_VERSION = 1
 def save_checkpoint(path: Path, model, spec: dict, optimizers: list, generator: torch.Generator, iteration: int,
                     wall_s: float, log_rows: list[dict], fit_cfg) -> None:
     state = {
-        "version": FORMAT_VERSION, "spec": spec, "model": model.state_dict(),
+        "version": FORMAT_VERSION, "spec": spec, "model": _weights(model),
         "optimizers": [opt.state_dict() for opt in optimizers], "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(), "iteration": iteration, "wall_s": wall_s, "log": log_rows,
         "fit": asdict(fit_cfg),
@@ -30,6 +30,18 @@ def save_checkpoint(path: Path, model, spec: dict, optimizers: list, generator: 
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _weights(model) -> dict:
+    """The state dict without the body model's buffers, which the spec's body model file rebuilds."""
+    return {k: v for k, v in model.state_dict().items() if not k.startswith("body_model.")}
+
+
+def _load_weights(model, weights: dict, path: Path) -> None:
+    missing, unexpected = model.load_state_dict(weights, strict=False)
+    missing = [k for k in missing if not k.startswith("body_model.")]
+    if missing or unexpected:
+        raise ValueError(f"{path}: checkpoint does not match the model (missing {missing[:5]}, unexpected {unexpected[:5]})")
 
 
 def _read(path: Path, device) -> dict:
@@ -45,7 +57,7 @@ def load_avatar(path: str | Path, device: str | torch.device = "cpu"):
     """The fitted `AvatarModel` of a checkpoint (avatar.pt), on `device`, in eval mode."""
     state = _read(Path(path), "cpu")
     model = build_avatar(state["spec"])
-    model.load_state_dict(state["model"])
+    _load_weights(model, state["model"], path)
     return model.to(device).eval()
 
 
@@ -62,7 +74,7 @@ def load_training_state(path: Path, model, optimizers: list, generator: torch.Ge
     changed = sorted(k for k, v in asdict(fit_cfg).items() if k not in free and state["fit"].get(k) != v)
     if changed:
         raise ValueError(f"{path}: checkpoint was written with different fit settings {changed}; delete it to start over")
-    model.load_state_dict(state["model"])
+    _load_weights(model, state["model"], path)
     for opt, opt_state in zip(optimizers, state["optimizers"]):
         opt.load_state_dict(opt_state)  # moves the moments onto the parameters' device
     generator.set_state(state["generator"])

@@ -103,7 +103,8 @@ def _plot_log(path: Path, rows: list[dict]) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax_loss, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
-    ax_loss.semilogy([r["iteration"] for r in rows], [r["loss"] for r in rows], lw=0.5)
+    steps = [r for r in rows if r["loss"] != ""]
+    ax_loss.semilogy([r["iteration"] for r in steps], [r["loss"] for r in steps], lw=0.5)
     ax_loss.set_xlabel("iteration")
     ax_loss.set_ylabel("training loss (Eq. 15)")
     evals = [r for r in rows if r["heldout_psnr"] != ""]
@@ -173,7 +174,7 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
     params = perturb_params(capture.params.select(index), fit_cfg.sigma_body, fit_cfg.seed)
     spec = {
         "avatar": asdict(avatar_cfg), "field": asdict(field_cfg), "precond": asdict(precond_cfg),
-        "body_model": dict(np.load(Path(capture_dir) / "body_model.npz", allow_pickle=True)),
+        "body_model_npz": (Path(capture_dir) / "body_model.npz").read_bytes(),
         "params": asdict(params), "frame_ids": list(train["frames"]), "variant": variant,
     }
     torch.manual_seed(fit_cfg.seed)
@@ -197,6 +198,9 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
 
     started = time.perf_counter()
     last_save = started
+    if start == 0:
+        rows = [{"iteration": 0, "wall_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
+                 "heldout_psnr": held_out.psnr(model, raster)}]
     progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
     for i in progress:
         lod = int(torch.randint(model.num_levels, (1,), generator=generator))
@@ -221,8 +225,8 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
         iteration = i + 1
         wall = wall_before + time.perf_counter() - started
         row = {"iteration": iteration, "wall_s": round(wall, 3), "lod": lod, "heldout_psnr": "",
-               "loss": float(totals["total"]), "l1": float(totals["l1"]), "ssim": float(totals["ssim"]),
-               "lpips": float(totals["lpips"]) if "lpips" in totals else ""}
+               **{key: totals[name].item() if name in totals else "" for key, name in
+                  (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
         if iteration % fit_cfg.eval_every == 0 or iteration == fit_cfg.iterations:
             row["heldout_psnr"] = held_out.psnr(model, raster)
             progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}")

@@ -1,0 +1,175 @@
+"""Avatar model + fit stage: masked loss, gradient flow to every group, novel-pose override, short fit, resume."""
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from pig.avatar.build import build_avatar, build_optimizers
+from pig.avatar.checkpoint import load_avatar
+from pig.avatar.config import AvatarConfig
+from pig.avatar.losses import band_radius, boundary_band, image_loss
+from pig.body.params import SmplxParams
+from pig.field.latent_grid import FieldConfig
+from pig.field.precondition import PrecondConfig
+from pig.render.api import render_gaussians
+
+
+def test_boundary_band_matches_opencv_dilate_minus_erode(rng):
+    mask = np.zeros((2, 40, 50), np.uint8)
+    mask[0, 10:30, 5:20] = 1
+    mask[1] = rng.random((40, 50)) > 0.6
+    for r in (1, 3):
+        kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        # OpenCV's default border for dilate/erode leaves the outside out of both operations.
+        expected = np.stack([cv2.dilate(m, kernel).astype(bool) & ~cv2.erode(m, kernel, borderType=cv2.BORDER_REPLICATE).astype(bool) for m in mask])
+        np.testing.assert_array_equal(boundary_band(torch.tensor(mask, dtype=torch.bool), r).numpy(), expected)
+    assert band_radius(1150, 3.0, 1150) == 3 and band_radius(256, 3.0, 1150) == 1 and band_radius(64, 3.0, 1150) == 0
+
+
+def test_loss_ignores_band_pixels_and_matches_closed_form(rng):
+    target = torch.tensor(rng.random((2, 24, 24, 3)), dtype=torch.float32)
+    render = target.clone()
+    band = torch.zeros(2, 24, 24, dtype=torch.bool)
+    band[:, 5:9] = True
+    render[band] = 0.9  # differs only inside the band
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    terms = image_loss(render, target, band, bg, (8, 2, 2))
+    assert terms["l1"].item() == 0 and abs(terms["ssim"].item()) < 1e-6 and "lpips" not in terms
+    render[:, 12, 12] += 0.3  # outside the band: L1 is the mean absolute difference
+    terms = image_loss(render, target, band, bg, (8, 2, 2))
+    torch.testing.assert_close(terms["l1"], torch.tensor(0.3 * 3 * 2 / (2 * 24 * 24 * 3)))
+    torch.testing.assert_close(terms["total"], 8 * terms["l1"] + 2 * terms["ssim"])
+
+
+@pytest.fixture(scope="module")
+def standin(tmp_path_factory):
+    from pig.body.standin import write_standin
+
+    path = tmp_path_factory.mktemp("standin") / "body_model.npz"
+    write_standin(path)
+    return path.read_bytes()
+
+
+def _small_model(standin, refine=True, **avatar):
+    t = 3
+    rng = np.random.default_rng(0)
+    pose = rng.normal(scale=0.2, size=(t, 55, 3))
+    params = SmplxParams(pose, np.zeros(10), np.zeros((t, 10)), np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], float))
+    cfg = AvatarConfig(num_anchors=600, levels=3, sh_degree=1, hidden_layers=2, hidden_width=32, output_init_gain=0.1,
+                       refine_shape=refine, refine_body=refine, refine_face=refine, refine_hands=refine, **avatar)
+    spec = dict(avatar=asdict(cfg), field=asdict(FieldConfig(resolutions=[4, 6], features=4)), precond=asdict(PrecondConfig()),
+                body_model_npz=standin, params=asdict(params), frame_ids=[10, 11, 12], variant="pig")
+    torch.manual_seed(0)
+    return build_avatar(spec)
+
+
+def _camera():
+    viewmat = torch.eye(4)
+    viewmat[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0]))  # looking down -z at a y-up body
+    viewmat[2, 3] = 3.0
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    return viewmat[None], K[None]
+
+
+def test_gradient_reaches_grid_anchors_decoders_and_refiner(standin):
+    model = _small_model(standin)
+    viewmat, K = _camera()
+    g = model(torch.tensor([1, 2]), lod=2)
+    target = torch.rand(1, 32, 32, 3, generator=torch.Generator().manual_seed(0))
+    loss = sum((render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], viewmat, K, 32, 32,
+                                 torch.zeros(3), backend="cpu").color - target).abs().mean() for k in range(2))
+    loss.backward()
+    groups = {"grid": model.grid.parameters(), "anchors": model.anchors.parameters(),
+              "decoders": model.decoder.parameters(), "refiner": model.refiner.parameters()}
+    for name, params in groups.items():
+        total = sum(p.grad.abs().sum().item() for p in params if p.grad is not None)
+        assert total > 0, f"no gradient reached the {name}"
+
+
+def test_model_outputs_levels_and_novel_pose_override(standin):
+    model = _small_model(standin, refine=False)
+    sizes = model.level_sizes
+    assert sizes == [150, 300, 600]
+    for lod in range(3):
+        g = model(torch.tensor([0]), lod)
+        assert g.means.shape == (1, sizes[lod], 3) and g.sh.shape == (1, sizes[lod], 4, 3)
+        torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(1, sizes[lod]))
+    # The coarse level's anchors are the first anchors of the finer level: same canonical positions.
+    with torch.no_grad():
+        fine, coarse = model(torch.tensor([1]), 2), model(torch.tensor([1]), 0)
+    assert fine.means.shape[1] == 600 and coarse.means.shape[1] == 150
+    # A pose override equal to the training pose reproduces that timestep; another pose moves the splats.
+    row = SmplxParams(model.pose_init[1:2].numpy(), model.betas_init.numpy(), model.expression[1:2].numpy(), model.transl[1:2].numpy())
+    same = model.gaussians(1, 2, row)
+    torch.testing.assert_close(same[0], fine.means[0])
+    row.transl = row.transl + np.array([[0.0, 0.0, 0.5]])
+    moved = model.gaussians(1, 2, row)
+    torch.testing.assert_close(moved[0], fine.means[0] + torch.tensor([0.0, 0.0, 0.5]))
+    assert model.nearest_timestep(model.pose_init[2]) == 2
+    assert model.timestep_of_frame(12) == 2
+
+
+# ---- fit stage on a generated capture (slow: generation + two short fits) ----
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    from pig.data.synthetic import SyntheticConfig, generate_capture
+    from pig.stages.preprocess import main as preprocess
+
+    root = tmp_path_factory.mktemp("fitcap")
+    raw = generate_capture(root / "raw", SyntheticConfig(cameras=5, frames=4, width=48, height=48, workers=1), progress=False)
+    out = root / "capture"
+    preprocess(["--input", str(raw), "--output", str(out), "--profile", "test", "--format", "thuman4",
+                "--body-model", str(raw / "body_model.npz"), "--no-progress"])
+    return out
+
+
+def _profile(tmp_path, **fit):
+    from pig.config import load_profile
+
+    profile = load_profile("test")
+    profile.pop("_path")
+    profile["fit"].update(fit)
+    path = tmp_path / "profile.yaml"
+    path.write_text(yaml.safe_dump(profile))
+    return str(path)
+
+
+@pytest.mark.slow
+def test_short_fit_learns_and_resumes_to_the_same_result(capture, tmp_path):
+    import pandas as pd
+
+    from pig.stages.fit import fit
+
+    profile = _profile(tmp_path, iterations=24, eval_every=12, checkpoint_minutes=0.0)
+    reference = fit(capture, tmp_path / "full", profile)
+    log = pd.read_csv(tmp_path / "full" / "train_log.csv")
+    assert log["iteration"].iloc[-1] == 24 and (tmp_path / "full" / "train_log.png").exists()
+    assert log["loss"].iloc[-6:].mean() < log["loss"].iloc[1:7].mean()
+    psnr = log["heldout_psnr"].dropna().to_numpy()
+    assert len(psnr) == 3 and psnr[-1] > psnr[0] + 0.5
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_10(iteration):
+        if iteration == 10:
+            raise Killed
+
+    with pytest.raises(Killed):
+        fit(capture, tmp_path / "resumed", profile, on_iteration=kill_at_10)
+    assert (tmp_path / "resumed" / "checkpoint.pt").exists() and not (tmp_path / "resumed" / "avatar.pt").exists()
+    resumed = fit(capture, tmp_path / "resumed", profile)
+    resumed_log = pd.read_csv(tmp_path / "resumed" / "train_log.csv")
+    assert resumed_log["iteration"].tolist() == log["iteration"].tolist()
+    a, b = torch.load(reference, weights_only=False), torch.load(resumed, weights_only=False)
+    assert a["iteration"] == b["iteration"] == 24
+    for key, value in a["model"].items():
+        torch.testing.assert_close(b["model"][key], value, rtol=1e-4, atol=1e-5, msg=key)
+    model = load_avatar(resumed)
+    means, quats, scales, opacities, sh = model.gaussians(0, model.num_levels - 1)
+    assert means.shape[0] == model.level_sizes[-1] and torch.isfinite(means).all()

@@ -1,0 +1,25 @@
+# Fit one avatar per (dataset, subject, variant) on the preprocessed capture's train split.
+# A killed fit resumes from {variant}/checkpoint.pt when the rule runs again.
+
+
+rule fit_avatar:
+    input:
+        capture="results/{dataset}/{subject}/capture/report.json",
+    output:
+        checkpoint="results/{dataset}/{subject}/{variant}/avatar.pt",
+        log_csv="results/{dataset}/{subject}/{variant}/train_log.csv",
+    params:
+        capture=lambda wildcards, input: str(Path(input.capture).parent),
+        output=lambda wildcards, output: str(Path(output.checkpoint).parent),
+        profile=PROFILE,
+    log:
+        "results/{dataset}/{subject}/{variant}/logs/fit.log",
+    benchmark:
+        "results/{dataset}/{subject}/{variant}/benchmarks/fit.tsv"
+    resources:
+        gpu=1,
+        mem_mb=16000,
+        runtime=24 * 60,
+    shell:
+        "python -m pig.stages.fit --capture {params.capture} --output {params.output} "
+        "--profile {params.profile} --variant {wildcards.variant} > {log} 2>&1"
