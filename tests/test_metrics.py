@@ -56,8 +56,9 @@ def test_ssim_extremes_and_gradient(rng):
     c1 = 0.01**2
     black, white = torch.zeros(1, 3, 16, 16, dtype=torch.float64), torch.ones(1, 3, 16, 16, dtype=torch.float64)
     assert ssim(black, white).item() == pytest.approx(c1 / (1 + c1), rel=1e-12)
-    y = torch.from_numpy(rng.random((1, 3, 16, 16))).requires_grad_()
-    assert torch.autograd.gradcheck(lambda t: ssim(x[..., :16, :16], t), (y,))
+    # Analytic gradient against central finite differences (float64), on a small image to stay fast.
+    y = torch.from_numpy(rng.random((1, 1, 12, 13))).requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: ssim(x[:, :1, :12, :13], t), (y,), fast_mode=True)
 
 
 def test_ssim_rejects_small_images():
