@@ -10,7 +10,7 @@ validate(config, "config/schema/config.schema.yaml")
 
 
 include: "workflow/rules/common.smk"
-include: "workflow/rules/data.smk"
+include: "workflow/rules/generate.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/evaluate.smk"
