@@ -163,23 +163,32 @@ def _smooth_min(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
 
 BLEND = {"body": 0.03, "hand": 0.006, "eye": 0.004}
 BLEND_HAND_TO_BODY = 0.02
-FAR = 0.1  # beyond every blend width: points farther than this from a primitive's box ignore it
+FAR = 0.1  # beyond every blend width
+SNAP = 0.001
 
 
-def _body_sdf(points: np.ndarray, prims: list[_Primitive]) -> tuple[np.ndarray, np.ndarray]:
-    """Blended signed distance of the whole body and, per point, the index of the nearest primitive."""
-    per_prim = np.full((len(points), len(prims)), FAR)
-    for index, prim in enumerate(prims):
+def _grid_sdf(axes: list[np.ndarray], prims: list[_Primitive]) -> np.ndarray:
+    """Blended signed distance of the whole body on the rectilinear grid `axes`.
+
+    Each primitive only touches the block of the grid within FAR of its bounding box; beyond it the
+    blend cannot move the zero set.
+    """
+    shape = tuple(len(a) for a in axes)
+    groups = {group: np.full(shape, FAR) for group in BLEND}
+    for prim in prims:
         lo, hi = _primitive_bounds(prim)
-        near = np.all((points > lo - FAR) & (points < hi + FAR), axis=1)
-        per_prim[near, index] = np.minimum(_primitive_sdf(prim, points[near]), FAR)
-    groups = {}
-    for index, prim in enumerate(prims):
-        value = per_prim[:, index]
-        groups[prim.group] = value if prim.group not in groups else _smooth_min(groups[prim.group], value, BLEND[prim.group])
+        block = tuple(slice(np.searchsorted(ax, l - FAR), np.searchsorted(ax, h + FAR)) for ax, l, h in zip(axes, lo, hi))
+        points = np.stack(np.meshgrid(*(ax[b] for ax, b in zip(axes, block)), indexing="ij"), axis=-1)
+        value = np.minimum(_primitive_sdf(prim, points.reshape(-1, 3)), FAR).reshape(points.shape[:-1])
+        target = groups[prim.group][block]  # a view: updated in place
+        target[...] = _smooth_min(target, value, BLEND[prim.group])
     total = _smooth_min(groups["body"], groups["hand"], BLEND_HAND_TO_BODY)
-    total = _smooth_min(total, groups["eye"], BLEND["eye"])
-    return total, per_prim.argmin(axis=1)
+    return _smooth_min(total, groups["eye"], BLEND["eye"])
+
+
+def _nearest_primitive(points: np.ndarray, prims: list[_Primitive]) -> np.ndarray:
+    """Index of the primitive each point is deepest in (or closest to): the point's body part."""
+    return np.stack([_primitive_sdf(prim, points) for prim in prims], axis=1).argmin(axis=1)
 
 
 def _graded_axis(lo: float, hi: float, coarse: float, fine: float, fine_intervals) -> np.ndarray:
@@ -205,10 +214,12 @@ def _grid_axes(coarse: float) -> list[np.ndarray]:
 
 def _surface(prims: list[_Primitive], spacing: float) -> tuple[np.ndarray, np.ndarray]:
     axes = _grid_axes(spacing)
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    sdf = _body_sdf(grid, prims)[0]
+    sdf = _grid_sdf(axes, prims)
+    # Grid values near zero put a vertex on every edge next to that grid point: slivers. Pushing
+    # them 1 mm off the surface moves it by at most that much and keeps triangles well shaped.
+    sdf = np.where(np.abs(sdf) < SNAP, np.where(sdf < 0, -SNAP, SNAP), sdf)
     # Marching cubes in index space; an axis-aligned edge maps linearly to its physical segment.
-    verts, faces, _, _ = marching_cubes(sdf.reshape([len(a) for a in axes]), level=0.0)
+    verts, faces, _, _ = marching_cubes(sdf, level=0.0)
     verts = np.stack([np.interp(verts[:, k], np.arange(len(axes[k])), axes[k]) for k in range(3)], axis=1)
     # marching cubes can emit zero-area triangles and vertices used by nothing; drop both.
     a, b, c = (verts[faces[:, k]] for k in range(3))
@@ -318,7 +329,7 @@ def make_standin_arrays(seed: int = 0, spacing: float = GRID_SPACING) -> dict[st
     joints, prims = _rest_joints_and_primitives()
     verts, faces = _surface(prims, spacing)
     mesh = trimesh.Trimesh(verts, faces, process=False)
-    labels = _body_sdf(verts, prims)[1]
+    labels = _nearest_primitive(verts, prims)
     adjacency = _vertex_adjacency(len(verts), faces)
     weights = _skinning_weights(np.array([prims[i].joint for i in labels]), adjacency)
     regressor = _joint_regressor(verts, joints)

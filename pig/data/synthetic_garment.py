@@ -15,7 +15,7 @@ J = {name: i for i, name in enumerate(SMPLX_JOINT_NAMES)}
 AROUND = 128  # vertices per ring
 DOWN = 28  # rings below the waist ring
 HIP_FOLLOW = 0.3  # how much of a leg's rotation the skirt side over it follows, at the hem
-FLARE = 0.21  # hem radius minus waist radius, metres
+FLARE = 0.25  # hem radius minus waist radius, metres
 SIM_HZ = 240.0  # clock of the spring integration, independent of the frame rate
 
 

@@ -46,7 +46,7 @@ class Motion:
 
         set_("pelvis", x=0.05 * np.sin(step), y=0.5 * g[0] * np.sin(turn))
         # Hip flexion is a negative rotation about x (thigh forward); knee flexion positive (shin back).
-        swing = 0.35 * g[1] * np.sin(step)
+        swing = 0.28 * g[1] * np.sin(step)
         set_("left_hip", x=-swing, z=0.05)
         set_("right_hip", x=swing, z=-0.05)
         set_("left_knee", x=0.15 + 0.45 * g[2] * (0.5 - 0.5 * np.cos(step - 0.3)))
@@ -64,7 +64,7 @@ class Motion:
         for side, sign in (("left", 1.0), ("right", -1.0)):
             arm_swing = 0.3 * g[5] * np.sin(step + (0.0 if side == "left" else np.pi))
             set_(f"{side}_collar", z=-sign * 0.1)
-            set_(f"{side}_shoulder", y=sign * arm_swing, z=-sign * (0.95 + 0.15 * np.sin(slow)))
+            set_(f"{side}_shoulder", y=sign * arm_swing, z=-sign * (0.75 + 0.12 * np.sin(slow)))
             bend = 0.4 + 0.9 * g[6] * (0.5 + 0.5 * np.sin(step + 1.2 + (0.0 if side == "left" else np.pi)))
             set_(f"{side}_elbow", y=-sign * bend)
             set_(f"{side}_wrist", x=0.2 * np.sin(slow + 2.0), z=-sign * 0.15)
@@ -82,7 +82,7 @@ class Motion:
         step, _, slow = self._cycles(t)
         knee_mean = 0.15 + 0.225 * self.gain[2]
         out = np.zeros((len(t), 3))
-        out[:, 0] = 0.07 * self.gain[0] * np.sin(2 * np.pi * SWAY_HZ * t + self.phase[6])
+        out[:, 0] = 0.055 * self.gain[0] * np.sin(2 * np.pi * SWAY_HZ * t + self.phase[6])
         out[:, 1] = self.ground_offset - 0.03 * knee_mean - 0.015 * np.cos(2 * step)
         out[:, 2] = 0.04 * np.sin(2 * np.pi * 0.3 * t + self.phase[7])
         return out

@@ -46,21 +46,53 @@ def render_frame(appearance: SceneAppearance, body: np.ndarray, garment: np.ndar
     vertices = np.concatenate([body, garment])
     mesh = trimesh.Trimesh(vertices, appearance.faces, process=False)
     caster = RayMeshIntersector(mesh)
-    normals = np.asarray(mesh.vertex_normals)
+    normals = _area_weighted_normals(vertices, appearance.faces)
     noise = ValueNoise(appearance.seed)
     for camera in cameras:
-        origin, directions = pixel_rays(camera, supersample)
+        origin, directions = _cached_rays(camera, supersample)
         shape = directions.shape[:-1]
         directions = directions.reshape(-1, 3)
-        triangle = caster.intersects_first(np.broadcast_to(origin, directions.shape), directions)
-        hit = triangle >= 0
-        colour = np.zeros((len(directions), 3))
-        colour[hit] = _shade(appearance, vertices, normals, triangle[hit], origin, directions[hit], noise)
-        rows = np.linspace(0, 1, camera.height)[:, None, None, None]
+        colour = np.zeros((len(directions), 3), dtype=np.float32)
+        hit = np.zeros(len(directions), dtype=bool)
+        for start in range(0, len(directions), CHUNK):  # bounded memory at any resolution
+            part = slice(start, start + CHUNK)
+            rays = directions[part].astype(np.float64)
+            triangle = caster.intersects_first(np.broadcast_to(origin, rays.shape), rays)
+            hit[part] = triangle >= 0
+            found = triangle >= 0
+            colour[part][found] = _shade(appearance, vertices, normals, triangle[found], origin, rays[found], noise)
+        rows = np.linspace(0, 1, camera.height, dtype=np.float32)[:, None, None, None]
         background = appearance.background[0] * (1 - rows) + appearance.background[1] * rows
         colour = np.where(hit.reshape(shape)[..., None], colour.reshape(shape + (3,)), background)
         coverage = hit.reshape(shape).mean(axis=-1)
         yield camera, np.clip(colour.mean(axis=2), 0, 1), coverage >= 0.5
+
+
+CHUNK = 1 << 19  # rays per Embree call
+RAY_CACHE_BYTES = 256 << 20  # cameras are fixed over frames: keep their rays while they are this small
+_RAYS: dict = {}
+
+
+def _cached_rays(camera: RawCamera, supersample: int) -> tuple[np.ndarray, np.ndarray]:
+    key = (camera.name, camera.K.tobytes(), camera.R.tobytes(), camera.T.tobytes(), camera.dist.tobytes(),
+           camera.width, camera.height, supersample)
+    if key in _RAYS:
+        return _RAYS[key]
+    origin, directions = pixel_rays(camera, supersample)
+    rays = (origin, directions.astype(np.float32))
+    if sum(d.nbytes for _, d in _RAYS.values()) + rays[1].nbytes <= RAY_CACHE_BYTES:
+        _RAYS[key] = rays
+    return rays
+
+
+def _area_weighted_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals from the sum of adjacent face normals weighted by face area."""
+    corners = vertices[faces]
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # length = 2 * area
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_normals)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
 
 
 def _shade(appearance, vertices, normals, triangle, origin, directions, noise) -> np.ndarray:
@@ -69,7 +101,9 @@ def _shade(appearance, vertices, normals, triangle, origin, directions, noise) -
     face_normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     depth = np.einsum("ij,ij->i", face_normal, corners[:, 0] - origin) / np.einsum("ij,ij->i", face_normal, directions)
     points = origin + depth[:, None] * directions
-    bary = trimesh.triangles.points_to_barycentric(corners, points)
+    # Clipped: a ray grazing an edge must not extrapolate normals or texture off the triangle.
+    bary = np.clip(trimesh.triangles.points_to_barycentric(corners, points), 0.0, 1.0)
+    bary /= bary.sum(axis=1, keepdims=True)
     corner_ids = appearance.faces[triangle]
     normal = np.einsum("ij,ijk->ik", bary, normals[corner_ids])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)

@@ -1,0 +1,28 @@
+# Generate the built-in synthetic subject (THuman4 layout + ground-truth meshes) under the synthetic
+# dataset's root; its sizes come from the profile's `synthetic` section (pig.data.synthetic).
+from pig.config import load_profile, load_section
+from pig.data.synthetic import SyntheticConfig
+
+
+def synthetic_config():
+    return load_section(load_profile(PROFILE), "synthetic", SyntheticConfig)
+
+
+rule generate_capture:
+    output:
+        directory(str(Path(dataset_config("synthetic")["root"]) / "{subject}")),
+    params:
+        profile=PROFILE,
+    log:
+        "results/synthetic/logs/generate_{subject}.log",
+    benchmark:
+        "results/synthetic/benchmarks/generate_{subject}.tsv"
+    threads: synthetic_config().workers
+    resources:
+        gpu=0,
+        # Rays are cast in bounded chunks: a few hundred MB per render process.
+        mem_mb=1500 + 500 * synthetic_config().workers,
+        runtime=10 + synthetic_config().cameras * synthetic_config().frames // 100,
+    shell:
+        "python -m pig.stages.generate --output {output} --profile {params.profile} --workers {threads} "
+        "--overwrite --quiet > {log} 2>&1"
