@@ -117,15 +117,19 @@ def test_silhouette_covers_exactly_the_pixels_inside_projected_triangles(rng):
 def test_tolerant_iou_of_concentric_discs_matches_the_closed_form():
     ys, xs = np.mgrid[:201, :361]
     r = np.hypot(xs - 100, ys - 100)
-    body, mask = r <= 40, r <= 60
-    raw = overlap_counts(body, mask, 0.0)
+    small, large = r <= 40, r <= 60
+    raw = overlap_counts(small, large, 0.0, 0.0)
     assert raw[0] / raw[1] == pytest.approx(40**2 / 60**2, rel=0.02)
     assert raw[2] / raw[1] == pytest.approx(raw[0] / raw[1])  # no tolerance: the plain IoU
-    half = overlap_counts(body, mask, 10.0)  # forgives the annulus 40 < r <= 50 of the mask
-    assert half[2] / half[1] == pytest.approx(1 - (60**2 - 50**2) / 60**2, rel=0.02)
-    assert overlap_counts(body, mask, 20.5)[2] == overlap_counts(body, mask, 20.5)[1]
-    apart = np.hypot(xs - 230, ys - 100) <= 40  # 30 px gap: a smaller tolerance forgives nothing
-    assert overlap_counts(apart, mask, 15.0)[2] == 0 and overlap_counts(apart, mask, 15.0)[1] > 0
+    # Mask larger than the body (a skirt): the garment radius forgives the annulus 40 < r <= 40 + 10.
+    skirt = overlap_counts(small, large, 0.0, 10.0)
+    assert skirt[2] / skirt[1] == pytest.approx(1 - (60**2 - 50**2) / 60**2, rel=0.02)
+    assert overlap_counts(small, large, 0.0, 20.5)[2] == overlap_counts(small, large, 0.0, 20.5)[1]
+    # Body larger than the mask: only the body radius forgives, the garment radius does not.
+    body_out = overlap_counts(large, small, 10.0, 30.0)
+    assert body_out[2] / body_out[1] == pytest.approx(1 - (60**2 - 50**2) / 60**2, rel=0.02)
+    apart = np.hypot(xs - 230, ys - 100) <= 40  # 30 px gap: smaller tolerances forgive nothing
+    assert overlap_counts(apart, large, 15.0, 15.0)[2] == 0 and overlap_counts(apart, large, 15.0, 15.0)[1] > 0
 
 
 def test_good_capture_passes_and_camera_to_world_calibration_is_named(tmp_path, capsys):

@@ -3,20 +3,22 @@
 Catches cameras and body parameters that disagree (above all camera-to-world calibration read as
 world-to-camera) before any fitting; data preparation, no paper equation.
 
-Score. Loose garments make the body silhouette B smaller than the mask M, so the pass/fail score is a
-tolerant IoU: pixels where B and M disagree count as agreeing when they lie within r pixels of the other
-silhouette, r = f * tolerance_m / z (z: median depth of the body in that camera):
-    IoU_r = (|B u M| - |B \\ D_r(M)| - |M \\ D_r(B)|) / |B u M|,  D_r = dilation by a disc of radius r,
+Score. The body silhouette B lies inside the clothed person's mask M up to calibration and fitting error,
+while loose garments and hair extend M well beyond B. So the pass/fail score is a tolerant IoU with one
+tolerance per direction: body pixels count as agreeing within r_b of the mask, mask pixels within r_g of
+the body, r = max(MIN_RADIUS_PX, f * tolerance_m / z), z the median depth of the body in that camera:
+    IoU_tol = (|B u M| - |B \\ D_rb(M)| - |M \\ D_rg(B)|) / |B u M|,  D_r = dilation by a disc of radius r,
 summed over the sampled frames. The plain IoU |B n M| / |B u M| is reported beside it.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
 
 NEAR = 0.01  # metres; triangles with a vertex closer than this to the camera plane are not drawn
+MIN_RADIUS_PX = 1.5  # rasterisation and resampling put silhouette edges up to about a pixel apart
 _SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
 
 
@@ -68,28 +70,39 @@ def _within(mask: np.ndarray, radius: float) -> np.ndarray:
     return distance <= radius
 
 
-def overlap_counts(body: np.ndarray, mask: np.ndarray, radius: float) -> np.ndarray:
+def overlap_counts(body: np.ndarray, mask: np.ndarray, body_radius: float, garment_radius: float) -> np.ndarray:
     """[|B n M|, |B u M|, tolerant agreement] pixel counts of one frame (see the module docstring)."""
     union = np.count_nonzero(body | mask)
-    missed = np.count_nonzero(body & ~_within(mask, radius)) + np.count_nonzero(mask & ~_within(body, radius))
+    missed = (np.count_nonzero(body & ~_within(mask, body_radius))
+              + np.count_nonzero(mask & ~_within(body, garment_radius)))
     return np.array([np.count_nonzero(body & mask), union, union - missed], dtype=np.float64)
 
 
+@dataclass
+class Tolerance:
+    body_m: float = 0.05  # body outside the mask: calibration and fitting error
+    garment_m: float = 0.20  # mask outside the body: loose garments, hair
+
+
 def camera_score(view: View, vertices: list[np.ndarray], masks: list[np.ndarray], faces: np.ndarray,
-                 tolerance_m: float) -> dict[str, float]:
+                 tolerance: Tolerance) -> dict[str, float]:
     """Plain and tolerant IoU of one camera over frames (vertices[i] posed for masks[i])."""
     counts = np.zeros(3)
-    radii = []
+    depths = []
     for verts, mask in zip(vertices, masks):
         _, z = project(verts, view.K, view.R, view.T)
         in_front = z[z > NEAR]
-        # Tolerance in pixels at the body's depth; with the body behind the camera any radius fails alike.
-        radius = float(view.K[0, 0] * tolerance_m / np.median(in_front)) if in_front.size else 0.0
-        radii.append(radius)
-        counts += overlap_counts(silhouette(verts, faces, view), mask, radius)
-    if counts[1] == 0:
-        return {"iou": float("nan"), "raw_iou": float("nan"), "radius_px": float(np.mean(radii))}
-    return {"iou": counts[2] / counts[1], "raw_iou": counts[0] / counts[1], "radius_px": float(np.mean(radii))}
+        # Tolerances in pixels at the body's depth; a body behind the camera fails whatever the radius.
+        depth = float(np.median(in_front)) if in_front.size else np.inf
+        depths.append(depth)
+        radii = [max(MIN_RADIUS_PX, view.K[0, 0] * t / depth) for t in (tolerance.body_m, tolerance.garment_m)]
+        counts += overlap_counts(silhouette(verts, faces, view), mask, *radii)
+    depth = float(np.median(depths))
+    scores = {"iou": float("nan"), "raw_iou": float("nan")}
+    if counts[1] > 0:
+        scores = {"iou": counts[2] / counts[1], "raw_iou": counts[0] / counts[1]}
+    return {**scores, "body_radius_px": max(MIN_RADIUS_PX, view.K[0, 0] * tolerance.body_m / depth),
+            "garment_radius_px": max(MIN_RADIUS_PX, view.K[0, 0] * tolerance.garment_m / depth)}
 
 
 def inverted(view: View) -> View:
@@ -98,7 +111,7 @@ def inverted(view: View) -> View:
 
 
 def check_projection(views: dict[str, View], frames: dict[str, list[int]], masks: dict[str, list[np.ndarray]],
-                     vertices: dict[int, np.ndarray], faces: np.ndarray, tolerance_m: float,
+                     vertices: dict[int, np.ndarray], faces: np.ndarray, tolerance: Tolerance,
                      min_iou: float) -> dict:
     """Score every camera; raise ProjectionCheckError naming the cameras that score below `min_iou`.
 
@@ -108,12 +121,13 @@ def check_projection(views: dict[str, View], frames: dict[str, list[int]], masks
     scores = {}
     for name, view in views.items():
         verts = [vertices[f] for f in frames[name]]
-        scores[name] = {**camera_score(view, verts, masks[name], faces, tolerance_m), "frames": frames[name]}
+        scores[name] = {**camera_score(view, verts, masks[name], faces, tolerance), "frames": frames[name]}
     failing = [c for c, s in scores.items() if not s["iou"] >= min_iou]
     report = {
-        "definition": "tolerant IoU: disagreeing pixels within radius_px (= f * tolerance_m / median body depth) of "
-                      "the other silhouette count as agreeing; raw_iou is the plain IoU",
-        "tolerance_m": tolerance_m,
+        "definition": "tolerant IoU: body pixels within body_radius_px of the mask and mask pixels within "
+                      "garment_radius_px of the body count as agreeing (radius = f * tolerance / median body depth, "
+                      f"at least {MIN_RADIUS_PX} px); raw_iou is the plain IoU",
+        "tolerance_m": asdict(tolerance),
         "min_iou": min_iou,
         "cameras": scores,
         "passed": not failing,
@@ -122,7 +136,7 @@ def check_projection(views: dict[str, View], frames: dict[str, list[int]], masks
         return report
     listing = ", ".join(f"{c} {scores[c]['iou']:.2f} (raw {scores[c]['raw_iou']:.2f})" for c in failing)
     flipped = {c: camera_score(inverted(views[c]), [vertices[f] for f in frames[c]], masks[c], faces,
-                               tolerance_m)["iou"] for c in failing}
+                               tolerance)["iou"] for c in failing}
     if all(score >= min_iou for score in flipped.values()):
         raise ProjectionCheckError(
             f"projection check failed: tolerant IoU below {min_iou} for {len(failing)} of {len(views)} cameras "
