@@ -59,9 +59,13 @@ def _shape_split(num_columns: int) -> int:
 
 
 class BodyModel(nn.Module):
-    """SMPL-X-layout skinning model; `forward` is batched over frames, in the buffers' dtype."""
+    """SMPL-X-layout skinning model; `forward` is batched over frames, in the buffers' dtype.
 
-    def __init__(self, arrays: dict[str, np.ndarray], source: str = "<arrays>"):
+    Build with `dtype=torch.float64` for full precision: `.to(torch.float64)` of a float32 model
+    keeps the float32-rounded buffers.
+    """
+
+    def __init__(self, arrays: dict[str, np.ndarray], source: str = "<arrays>", dtype: torch.dtype = torch.float32):
         super().__init__()
         missing = [k for k in REQUIRED_KEYS if k not in arrays]
         if missing:
@@ -107,10 +111,10 @@ class BodyModel(nn.Module):
             if key in arrays:
                 hands_mean[part] = np.asarray(arrays[key], dtype=np.float64).reshape(15, 3)
         self.register_buffer("hands_mean", torch.from_numpy(hands_mean))
-        self.to(torch.float32)
+        self.to(dtype)
 
     @classmethod
-    def from_file(cls, path: str | Path) -> "BodyModel":
+    def from_file(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> "BodyModel":
         path = Path(path)
         if not path.is_file():
             raise BodyModelError(f"body model file {path} does not exist (expected an SMPL-X npz such as SMPLX_NEUTRAL.npz)")
@@ -119,7 +123,7 @@ class BodyModel(nn.Module):
                 arrays = {k: data[k] for k in data.files}
         except (OSError, ValueError) as err:
             raise BodyModelError(f"{path}: not a readable npz file: {err}") from None
-        return cls(arrays, source=str(path))
+        return cls(arrays, source=str(path), dtype=dtype)
 
     @property
     def dtype(self) -> torch.dtype:

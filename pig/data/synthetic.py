@@ -99,7 +99,7 @@ def build_scene(cfg: SyntheticConfig) -> SyntheticScene:
     """Pose body and skirt over time and place the cameras (deterministic in `cfg.seed`)."""
     rng = np.random.default_rng(cfg.seed)
     arrays = body_model_arrays(cfg)
-    model = BodyModel(arrays, source=cfg.body_model or "<stand-in>").to(torch.float64)
+    model = BodyModel(arrays, source=cfg.body_model or "<stand-in>", dtype=torch.float64)
     betas = np.clip(rng.normal(0.0, 0.6, size=10), -1.5, 1.5)
     with torch.no_grad():
         rest = model(torch.zeros(1, 55, 3, dtype=torch.float64), torch.from_numpy(betas))
