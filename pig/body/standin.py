@@ -246,7 +246,7 @@ def _vertex_adjacency(num_vertices: int, faces: np.ndarray) -> sp.csr_matrix:
     return adj
 
 
-def _skinning_weights(labels: np.ndarray, adjacency: sp.csr_matrix, iterations: int = 6) -> np.ndarray:
+def _skinning_weights(labels: np.ndarray, adjacency: sp.csr_matrix, iterations: int = 10) -> np.ndarray:
     """Hard part labels diffused along the surface (not through space, so the legs never mix)."""
     weights = np.zeros((len(labels), NUM_JOINTS))
     weights[np.arange(len(labels)), labels] = 1.0
@@ -317,7 +317,8 @@ def _shape_directions(vertices, normals, labels, prims, joints, rng) -> np.ndarr
     for k in range(NUM_EXPRESSION):  # bumps on the face (front of the head)
         theta, phi = rng.uniform(-0.9, 0.9), rng.uniform(-0.6, 0.3)
         centre = head + np.array([0.07 * np.sin(theta), 0.08 + 0.08 * phi, 0.09 * np.cos(theta)])
-        bump = np.exp(-np.sum((vertices - centre) ** 2, axis=1) / (2 * 0.02**2))
+        dist_sq = np.sum((vertices - centre) ** 2, axis=1)
+        bump = np.where(dist_sq < 0.08**2, np.exp(-dist_sq / (2 * 0.02**2)), 0.0)  # cut at 4 sigma: local
         dirs[:, :, NUM_BETAS + k] = 0.006 * bump[:, None] * normals
     return dirs
 
