@@ -257,3 +257,43 @@ def test_synthetic_and_dna_protocols():
 def test_split_errors(cfg, message):
     with pytest.raises(CaptureError, match=message):
         make_split([f"cam{i}" for i in range(4)], list(range(10)), cfg, "s", "where.yaml")
+
+
+# -- the synthetic capture (engineer A's generator, `test` profile) -------------------------------------------
+
+@pytest.fixture(scope="module")
+def synthetic_raw(tmp_path_factory):
+    from pig.config import load_profile
+    from pig.data.synthetic import SyntheticConfig, generate_capture
+
+    cfg = load_section(load_profile("test"), "synthetic", SyntheticConfig)
+    return generate_capture(tmp_path_factory.mktemp("synthetic") / "subject00", cfg, progress=False)
+
+
+@pytest.mark.slow
+def test_synthetic_capture_passes_with_iou_above_0_9_on_every_camera(synthetic_raw, tmp_path):
+    assert _run(synthetic_raw, tmp_path / "capture", "--dataset", "synthetic") == 0
+    report = json.loads((tmp_path / "capture" / "report.json").read_text())
+    cameras = report["projection_check"]["cameras"]
+    assert len(cameras) == len(json.loads((synthetic_raw / "calibration.json").read_text()))
+    assert all(c["iou"] >= 0.9 for c in cameras.values()), cameras
+    # The skirt: the plain IoU is clearly lower, so the tolerance is doing the work it is documented to do.
+    assert all(c["raw_iou"] < c["iou"] for c in cameras.values())
+    capture = Capture.load(tmp_path / "capture")
+    assert capture.split["novel_pose"]["frames"] == capture.frames[-2:]  # ceil(25% of 6 frames)
+
+
+@pytest.mark.slow
+def test_synthetic_capture_with_camera_to_world_calibration_fails_naming_it(synthetic_raw, tmp_path, capsys):
+    import shutil
+
+    raw = tmp_path / "subject00"
+    shutil.copytree(synthetic_raw, raw)
+    calibration = json.loads((raw / "calibration.json").read_text())
+    for cam in calibration.values():
+        R, T = np.asarray(cam["R"], dtype=np.float64).reshape(3, 3), np.asarray(cam["T"], dtype=np.float64)
+        cam["R"], cam["T"] = R.T.tolist(), (-R.T @ T).tolist()
+    (raw / "calibration.json").write_text(json.dumps(calibration))
+    assert _run(raw, tmp_path / "capture", "--dataset", "synthetic") == 1
+    assert "calibration looks camera-to-world; invert it" in capsys.readouterr().err
+    assert not (tmp_path / "capture").exists() and _leftovers(tmp_path) == []

@@ -159,7 +159,7 @@ class Capture:
             raise CaptureError(f"{path}: image is {data.shape[1]}x{data.shape[0]}, cameras.json says "
                                f"{cam.width}x{cam.height}")
         if kind == "images":
-            data = np.ascontiguousarray(data[..., ::-1])
+            data = cv2.cvtColor(data, cv2.COLOR_BGR2RGB)
         data.setflags(write=False)  # shared by every caller of the cache
         with self._lock:
             self._cache[key] = data

@@ -32,6 +32,14 @@ def scaled_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return out
 
 
+def composite(image: np.ndarray, mask: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """`image` where `mask`, else `background` (3,) uint8; cv2.copyTo is ~2x faster than np.where here."""
+    out = np.empty_like(image)
+    out[:] = background
+    cv2.copyTo(image, mask.view(np.uint8), out)
+    return out
+
+
 class Rectifier:
     """Maps a raw (distorted) image and matte of `camera` to the undistorted, composited, resized pair.
 
@@ -55,7 +63,7 @@ class Rectifier:
             image = cv2.remap(image, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             matte = cv2.remap(matte, *self._maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
         mask = matte > MASK_THRESHOLD
-        image = np.where(mask[..., None], image, background)
+        image = composite(image, mask, background)
         if (self.width, self.height) != (self.camera.width, self.camera.height):
             # INTER_AREA averages when shrinking; the mask keeps the pixels that are mostly foreground.
             shrink = self.width < self.camera.width
@@ -66,5 +74,5 @@ class Rectifier:
                 mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
             else:
                 mask = cv2.resize(mask.astype(np.uint8) * 255, size, interpolation=interp) >= MASK_THRESHOLD
-            image = np.where(mask[..., None], image, background)
-        return np.ascontiguousarray(image, dtype=np.uint8), mask
+            image = composite(image, mask, background)
+        return image, mask

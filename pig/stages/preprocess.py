@@ -132,7 +132,8 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         def work(rectify: Rectifier, frame: int) -> np.ndarray | None:
             cam = rectify.camera.name
             image, mask = rectify(raw.read_image(cam, frame), raw.read_mask(cam, frame), background)
-            _write_png(tmp / "images" / cam / f"{frame:08d}.png", image[..., ::-1], cfg.png_compression)
+            _write_png(tmp / "images" / cam / f"{frame:08d}.png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
+                       cfg.png_compression)
             _write_png(tmp / "masks" / cam / f"{frame:08d}.png", mask.astype(np.uint8) * 255, cfg.png_compression)
             return mask if frame in checked[cam] else None
 
@@ -141,6 +142,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         cv2.setNumThreads(1)  # parallel over images instead; OpenCV's own pool would oversubscribe the cores
         pool = ThreadPoolExecutor(max(1, cfg.workers))
         bar = tqdm(total=len(pairs), desc="preprocess", unit="img", disable=not progress)
+        images_start = time.perf_counter()
         try:
             # Camera by camera, so only one camera's undistortion maps are alive at a time.
             for cam, cam_frames in by_camera.items():
@@ -153,6 +155,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
             pool.shutdown(wait=True, cancel_futures=True)
             cv2.setNumThreads(threads)
             bar.close()
+        images_s = time.perf_counter() - images_start
 
         cameras_json = {c: {"K": v.K.tolist(), "R": v.R.tolist(), "T": v.T.tolist(), "width": v.width,
                             "height": v.height} for c, v in views.items()}
@@ -163,6 +166,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         (tmp / "split.json").write_text(json.dumps(split, indent=1))
         shutil.copyfile(body_model, tmp / "body_model.npz")
 
+        check_start = time.perf_counter()
         check = check_projection({c: views[c] for c in checked}, checked, check_masks, vertices,
                                  model.faces.numpy(), Tolerance(cfg.check_body_tolerance_m,
                                                                 cfg.check_garment_tolerance_m), cfg.min_iou)
@@ -179,6 +183,8 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
             "background": background.tolist(),
             "projection_check": check,
             "seconds": round(time.perf_counter() - start, 3),
+            "seconds_images": round(images_s, 3),
+            "seconds_check": round(time.perf_counter() - check_start, 3),
         }
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
         _replace_dir(tmp, output)
