@@ -8,6 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from pig.config import load_profile, load_section
 from pig.render import RasterizerConfig, RenderError, render_gaussians
+from pig.render.cpu_compositor import row_spans
+from pig.render.projection import project_splats
 
 C0 = 0.28209479177387814  # SH band-0 constant
 C1 = 0.4886025119029199  # SH band-1 constant
@@ -309,6 +311,28 @@ def test_float32_keeps_precision_over_many_pairs():
     assert out64.alpha.mean() > 0.5
     torch.testing.assert_close(out32.color.double(), out64.color, rtol=0, atol=2e-5)
     torch.testing.assert_close(out32.alpha.double(), out64.alpha, rtol=0, atol=2e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_row_spans_cover_every_pixel_that_reaches_the_alpha_cutoff(dtype):
+    # Elongated, rotated and large splats, some cut by the image border.
+    gaussians = _gaussians(300, 1, dtype=dtype, seed=9, spread=0.7, scale=(0.005, 0.4))
+    gaussians[2][:, 0] *= 0.05
+    K = _intrinsics(40.0, 24.0, 16.0, dtype)
+    splats = project_splats(*gaussians, torch.eye(4, dtype=dtype)[None], K[None], 48, 32, 0)
+    geometry = torch.cat([splats.means2d, splats.conics, splats.opacities[:, None]], dim=1)
+    spans = row_spans(geometry, splats.radii, splats.camera, 48, 32)
+    covered = torch.zeros(len(geometry), 32, 48, dtype=torch.bool)
+    for s, row, x0, nx in zip(*(t.tolist() for t in (spans.splat, spans.row, spans.x0, spans.nx))):
+        covered[s, row, x0 : x0 + nx] = True
+    g = geometry.double()
+    dx = g[:, 0, None, None] - (torch.arange(48, dtype=torch.float64) + 0.5)
+    dy = g[:, 1, None, None] - (torch.arange(32, dtype=torch.float64)[:, None] + 0.5)
+    sigma = 0.5 * (g[:, 2, None, None] * dx * dx + g[:, 4, None, None] * dy * dy) + g[:, 3, None, None] * dx * dy
+    reaches = g[:, 5, None, None] * torch.exp(-sigma) >= (1 - 1e-6) / 255
+    assert reaches.sum() > 10_000
+    assert not (reaches & ~covered).any()
+    assert covered.sum() < 1.2 * reaches.sum()  # tight: few pairs enumerated in vain
 
 
 # ---------------------------------------------------------------- inputs and configuration
