@@ -67,7 +67,7 @@ def resolve_body_model(explicit: str | Path | None, raw_root: Path) -> Path:
         f"a synthetic capture has {RAW_BODY_MODEL} in its folder")
 
 
-def _check_frames(frames: list[int], count: int) -> list[int]:
+def _sample_frames(frames: list[int], count: int) -> list[int]:
     """`count` frames evenly spaced over `frames` (all of them if fewer)."""
     picks = np.unique(np.round(np.linspace(0, len(frames) - 1, min(count, len(frames)))).astype(int))
     return [frames[i] for i in picks]
@@ -112,7 +112,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
     views = {c: View(scaled_intrinsics(cam.K, sizes[c][0] / cam.width, sizes[c][1] / cam.height), cam.R, cam.T,
                      *sizes[c]) for c, cam in raw.cameras.items()}
     by_camera = {c: [f for cc, f in pairs if cc == c] for c in cameras}
-    checked = {c: _check_frames(fs, cfg.check_frames) for c, fs in by_camera.items() if fs}
+    checked = {c: _sample_frames(fs, cfg.check_frames) for c, fs in by_camera.items() if fs}
     # Pose the body for the check first: a body model that does not fit the parameters fails before any writing.
     check_ids = sorted({f for fs in checked.values() for f in fs})
     with torch.no_grad():
