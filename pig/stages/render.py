@@ -29,7 +29,7 @@ BLACK = (0.0, 0.0, 0.0)  # evaluation background (paper protocol: black, ground 
 def device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
-    return f"CPU {platform.machine()} ({torch.get_num_threads()} threads)"
+    return f"CPU {platform.machine()}, torch threads={torch.get_num_threads()}"
 
 
 def model_megabytes(model: torch.nn.Module, num_anchors: int, level_size: int) -> float:
