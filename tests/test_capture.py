@@ -178,7 +178,8 @@ def test_bad_frame_access_names_the_file(preprocessed, tmp_path):
 def test_body_model_poses_onto_the_masks(preprocessed):
     """The saved parameters and body model reproduce the check: the posed body projects inside the masks."""
     capture = Capture.load(preprocessed[1])
-    model = capture.body_model().to(torch.float64)
+    model = capture.body_model(torch.float64)
+    assert model.dtype == torch.float64
     p = capture.params
     with torch.no_grad():
         vertices = model(torch.from_numpy(p.full_pose), torch.from_numpy(p.betas), torch.from_numpy(p.expression),

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from pig.body.model import BodyModel
@@ -126,8 +127,9 @@ class Capture:
         """(H, W) bool foreground mask."""
         return self._read("masks", camera, frame) > 127
 
-    def body_model(self) -> BodyModel:
-        return BodyModel.from_file(self.root / "body_model.npz")
+    def body_model(self, dtype: torch.dtype = torch.float32) -> BodyModel:
+        """The body model the capture's parameters were checked with (body_model.npz)."""
+        return BodyModel.from_file(self.root / "body_model.npz", dtype=dtype)
 
     def preload(self, pairs: list[tuple[str, int]] | None = None, workers: int = 2) -> None:
         """Decode images and masks of `pairs` (default: all) into the cache with a thread pool."""

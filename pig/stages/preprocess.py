@@ -104,7 +104,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
     needed = {(c, f) for part in split.values() for c in part["cameras"] for f in part["frames"]}
     pairs = [(c, f) for c in cameras for f in raw.frames if (c, f) in needed and raw.has_frame(c, f)]
     frames = sorted({f for part in split.values() for f in part["frames"]})
-    model = BodyModel.from_file(body_model).to(torch.float64)
+    model = BodyModel.from_file(body_model, dtype=torch.float64)
     if not pairs:
         raise CaptureError(f"{raw.source}: none of the split's images exist (all listed as missing)")
 
