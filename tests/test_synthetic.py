@@ -126,6 +126,16 @@ def test_deterministic_per_seed(capture, tmp_path, cfg, scene):
     assert not np.allclose(other.thuman_params["body_pose"], scene.thuman_params["body_pose"])
 
 
+@pytest.mark.slow  # spawns two interpreters that import torch
+def test_worker_processes_write_the_same_capture(tmp_path, cfg):
+    small = dataclasses.replace(cfg, cameras=3, frames=2, width=40, height=32)
+    one = generate_capture(tmp_path / "one", small, progress=False)
+    two = generate_capture(tmp_path / "two", dataclasses.replace(small, workers=2), progress=False)
+    images = sorted(p.relative_to(one) for p in one.rglob("*.jpg"))
+    assert len(images) == 2 * 3 * 2
+    assert all((one / rel).read_bytes() == (two / rel).read_bytes() for rel in images)
+
+
 def test_existing_output_is_refused(capture, capsys):
     assert generate.main(["--output", str(capture), "--profile", "test", "--quiet"]) == 2
     assert "already exists" in capsys.readouterr().err

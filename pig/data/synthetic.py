@@ -25,7 +25,7 @@ from pig.body.standin import make_standin_arrays
 from .raw import RawCamera
 from .synthetic_garment import build_skirt, pose_skirt, secondary_motion
 from .synthetic_motion import Motion
-from .synthetic_render import SceneAppearance, render_frame
+from .synthetic_render import RAY_CACHE_BYTES, SceneAppearance, render_frame
 from .synthetic_rig import make_ring
 
 
@@ -178,20 +178,35 @@ def calibration_json(cameras: list[RawCamera]) -> dict:
 _WORKER: dict = {}
 
 
-def _init_worker(appearance, cameras, root, supersample, quality) -> None:
-    _WORKER.update(appearance=appearance, cameras=cameras, root=Path(root), supersample=supersample, quality=quality)
+def _init_worker(appearance, cameras, body, garment, root, supersample, quality) -> None:
+    _WORKER.update(appearance=appearance, cameras=cameras, body=body, garment=garment, root=Path(root),
+                   supersample=supersample, quality=quality)
     cv2.setNumThreads(1)
 
 
-def _render_and_write(task) -> int:
-    frame, body, garment = task
+def _render_and_write(task: tuple[list[int], list[int]]) -> int:
+    """Render and write the views of some frames seen by some cameras; returns the number of views."""
+    frames, camera_ids = task
     w = _WORKER
-    for camera, rgb, mask in render_frame(w["appearance"], body, garment, w["cameras"], w["supersample"]):
-        name = f"{frame:08d}.jpg"
-        image = cv2.cvtColor((rgb * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
-        _imwrite(w["root"] / "images" / camera.name / name, image, w["quality"])
-        _imwrite(w["root"] / "masks" / camera.name / name, mask.astype(np.uint8) * 255, w["quality"])
-    return frame
+    cameras = [w["cameras"][c] for c in camera_ids]
+    for frame in frames:
+        for camera, rgb, mask in render_frame(w["appearance"], w["body"][frame], w["garment"][frame], cameras,
+                                              w["supersample"]):
+            name = f"{frame:08d}.jpg"
+            image = cv2.cvtColor((rgb * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
+            _imwrite(w["root"] / "images" / camera.name / name, image, w["quality"])
+            _imwrite(w["root"] / "masks" / camera.name / name, mask.astype(np.uint8) * 255, w["quality"])
+    return len(frames) * len(cameras)
+
+
+def _tasks(cfg: SyntheticConfig) -> list[tuple[list[int], list[int]]]:
+    """(frames, cameras) work items: camera groups whose rays fit a worker's cache, frames split ~4 items per worker."""
+    ray_bytes = cfg.width * cfg.height * cfg.supersample**2 * 3 * 4
+    group = max(1, min(cfg.cameras, RAY_CACHE_BYTES // ray_bytes))
+    camera_groups = [list(range(c, min(c + group, cfg.cameras))) for c in range(0, cfg.cameras, group)]
+    step = max(1, round(cfg.frames * len(camera_groups) / (4 * cfg.workers)))
+    frame_groups = [list(range(f, min(f + step, cfg.frames))) for f in range(0, cfg.frames, step)]
+    return [(frames, cams) for frames in frame_groups for cams in camera_groups]
 
 
 def _imwrite(path: Path, image: np.ndarray, quality: int) -> None:
@@ -237,19 +252,19 @@ def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = Fals
 
 
 def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progress: bool) -> None:
-    tasks = [(k, scene.body_vertices[k], scene.garment_vertices[k]) for k in range(cfg.frames)]
-    init = (scene.appearance, scene.cameras, str(root), cfg.supersample, cfg.jpeg_quality)
-    bar = tqdm(total=cfg.frames, desc="render frames", unit="frame", disable=not progress)
-    workers = min(cfg.workers, cfg.frames)
+    tasks = _tasks(cfg)
+    init = (scene.appearance, scene.cameras, scene.body_vertices, scene.garment_vertices, str(root), cfg.supersample,
+            cfg.jpeg_quality)
+    bar = tqdm(total=cfg.frames * cfg.cameras, desc="render views", unit="view", disable=not progress)
+    workers = min(cfg.workers, len(tasks))
     if workers == 1:
         _init_worker(*init)
         for task in tasks:
-            _render_and_write(task)
-            bar.update()
+            bar.update(_render_and_write(task))
     else:
         # spawn, not fork: the parent holds torch's thread pools, which do not survive a fork.
         context = multiprocessing.get_context("spawn")
         with context.Pool(workers, initializer=_init_worker, initargs=init) as pool:
-            for _ in pool.imap_unordered(_render_and_write, tasks):
-                bar.update()
+            for views in pool.imap_unordered(_render_and_write, tasks):
+                bar.update(views)
     bar.close()

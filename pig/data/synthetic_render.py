@@ -69,7 +69,7 @@ def render_frame(appearance: SceneAppearance, body: np.ndarray, garment: np.ndar
 
 
 CHUNK = 1 << 19  # rays per Embree call
-RAY_CACHE_BYTES = 256 << 20  # cameras are fixed over frames: keep their rays while they are this small
+RAY_CACHE_BYTES = 256 << 20  # cameras are fixed over frames: keep this much of their rays
 _RAYS: dict = {}
 
 
@@ -80,8 +80,9 @@ def _cached_rays(camera: RawCamera, supersample: int) -> tuple[np.ndarray, np.nd
         return _RAYS[key]
     origin, directions = pixel_rays(camera, supersample)
     rays = (origin, directions.astype(np.float32))
-    if sum(d.nbytes for _, d in _RAYS.values()) + rays[1].nbytes <= RAY_CACHE_BYTES:
-        _RAYS[key] = rays
+    if sum(d.nbytes for _, d in _RAYS.values()) + rays[1].nbytes > RAY_CACHE_BYTES:
+        _RAYS.clear()  # work items group cameras to fit (pig.data.synthetic._tasks): older groups are done
+    _RAYS[key] = rays
     return rays
 
 

@@ -13,6 +13,8 @@ rule generate_capture:
         directory(str(Path(dataset_config("synthetic")["root"]) / "{subject}")),
     params:
         profile=PROFILE,
+        # Not used by the command: a changed `synthetic` section changes this and so reruns the rule.
+        settings=repr(synthetic_config()),
     log:
         "results/synthetic/logs/generate_{subject}.log",
     benchmark:
@@ -20,8 +22,8 @@ rule generate_capture:
     threads: synthetic_config().workers
     resources:
         gpu=0,
-        # Rays are cast in bounded chunks: a few hundred MB per render process.
-        mem_mb=1500 + 500 * synthetic_config().workers,
+        # Per render process: a 256 MB ray cache plus chunked casting and one view's buffers.
+        mem_mb=1500 + 800 * synthetic_config().workers,
         runtime=10 + synthetic_config().cameras * synthetic_config().frames // 100,
     shell:
         "python -m pig.stages.generate --output {output} --profile {params.profile} --workers {threads} "
