@@ -283,7 +283,7 @@ def test_batched_cameras_equal_separate_calls():
         torch.testing.assert_close(a, t.grad, rtol=1e-8, atol=1e-8)
 
 
-def test_bands_with_checkpointing_equal_one_band():
+def test_bands_equal_one_band():
     gaussians = [t.requires_grad_(True) for t in _gaussians(300, 9, seed=6, scale=(0.02, 0.2))]
     views = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
     Ks = torch.stack([_intrinsics(40.0, 24.0, 16.0), _intrinsics(30.0, 20.0, 18.0)])
