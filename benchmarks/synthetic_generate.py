@@ -1,0 +1,68 @@
+"""Time the synthetic capture generator: stand-in model, scene, one frame (cold vs cached rays), whole profiles.
+
+    python benchmarks/synthetic_generate.py [--profiles test cpu-demo]
+
+Prints one table; ratios are taken within this process so they survive noisy shared cores.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+from pig.body.standin import make_standin_arrays
+from pig.config import load_profile, load_section
+from pig.data import synthetic_render
+from pig.data.synthetic import SyntheticConfig, build_scene, generate_capture
+from pig.data.synthetic_render import render_frame
+
+
+def cpu_seconds() -> float:
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def timed(fn):
+    wall, cpu = time.perf_counter(), cpu_seconds()
+    result = fn()
+    return result, time.perf_counter() - wall, cpu_seconds() - cpu
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--profiles", nargs="+", default=["test", "cpu-demo"])
+    args = parser.parse_args()
+    rows = []
+    _, wall, cpu = timed(lambda: make_standin_arrays(0))
+    rows.append(("-", "stand-in model (make_standin_arrays)", wall, cpu, ""))
+    for name in args.profiles:
+        cfg = load_section(load_profile(name), "synthetic", SyntheticConfig)
+        scene, wall, cpu = timed(lambda: build_scene(cfg))
+        rows.append((name, "build_scene (stand-in cached)", wall, cpu, ""))
+        synthetic_render._RAYS.clear()
+        frame = lambda: list(render_frame(scene.appearance, scene.body_vertices[0], scene.garment_vertices[0],  # noqa: E731
+                                          scene.cameras, cfg.supersample))
+        _, cold, cold_cpu = timed(frame)
+        _, warm, warm_cpu = timed(frame)
+        rows.append((name, f"render 1 frame x {cfg.cameras} cams, rays computed", cold, cold_cpu, ""))
+        rows.append((name, f"render 1 frame x {cfg.cameras} cams, rays cached", warm, warm_cpu,
+                     f"cached/computed CPU {warm_cpu / cold_cpu:.2f}"))
+        totals = {}
+        for workers in (1, 2):
+            with tempfile.TemporaryDirectory() as tmp:
+                run = dataclasses.replace(cfg, workers=workers)
+                _, wall, cpu = timed(lambda: generate_capture(Path(tmp) / "subject", run, progress=False))
+            totals[workers] = wall
+            note = "" if workers == 1 else f"wall 2 workers / 1 worker {wall / totals[1]:.2f}"
+            rows.append((name, f"generate_capture, {workers} worker(s), {cfg.frames} frames", wall, cpu, note))
+    print(f"| {'profile':8} | {'step':52} | {'wall s':>7} | {'cpu s':>7} | note |")
+    print(f"|{'-' * 10}|{'-' * 54}|{'-' * 9}|{'-' * 9}|------|")
+    for profile, step, wall, cpu, note in rows:
+        print(f"| {profile:8} | {step:52} | {wall:7.2f} | {cpu:7.2f} | {note} |")
+
+
+if __name__ == "__main__":
+    main()
