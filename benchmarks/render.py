@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from pig.render import render_gaussians
+from pig.render.cpu_compositor import row_spans
 from pig.render.projection import project_splats
 
 
@@ -45,26 +46,30 @@ def make_scene(n: int, width: int, height: int, device: str, seed: int = 0, sh_d
 
 
 def count_pairs(gaussians, viewmats, Ks, width, height) -> int:
-    """(Gaussian, pixel) pairs inside the boxes, the compositor's work before the alpha cut."""
+    """(Gaussian, pixel) pairs the compositor enumerates (its row spans), its unit of work."""
     with torch.no_grad():
         splats = project_splats(*gaussians, viewmats, Ks, width, height, 3)
-        sides = (2 * splats.radii + 1).clamp(max=max(width, height))
-        return int((sides[:, 0] * sides[:, 1]).sum())
+        geometry = torch.cat([splats.means2d, splats.conics, splats.opacities[:, None]], dim=1)
+        return int(row_spans(geometry, splats.radii, splats.camera, width, height).nx.sum())
 
 
-def time_call(fn, device: str, repeats: int) -> float:
-    """Median seconds of `repeats` calls after one warm-up call."""
+def time_call(fn, device: str, repeats: int) -> tuple[float, float]:
+    """Median wall and process-CPU seconds of `repeats` calls after one warm-up call.
+
+    CPU seconds are the steadier number on a shared machine: they exclude time spent descheduled.
+    """
     fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
         if device == "cuda":
             torch.cuda.synchronize()
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
         if device == "cuda":
             torch.cuda.synchronize()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def bench(n: int, width: int, height: int, device: str, backend: str, repeats: int) -> dict:
@@ -80,15 +85,20 @@ def bench(n: int, width: int, height: int, device: str, backend: str, repeats: i
         out = render_gaussians(*params, viewmats, Ks, width, height, background, backend=backend)
         (out.color.sum() + out.alpha.sum() + out.depth.sum()).backward()
 
+    forward_s, forward_cpu_s = time_call(forward, device, repeats)
+    both_s, both_cpu_s = time_call(forward_backward, device, repeats)
     return {
         "device": device,
         "backend": backend,
+        "threads": torch.get_num_threads(),
         "gaussians": n,
         "width": width,
         "height": height,
-        "box_pairs": count_pairs(gaussians, viewmats, Ks, width, height),
-        "forward_s": time_call(forward, device, repeats),
-        "forward_backward_s": time_call(forward_backward, device, repeats),
+        "pairs": count_pairs(gaussians, viewmats, Ks, width, height),
+        "forward_s": forward_s,
+        "forward_cpu_s": forward_cpu_s,
+        "forward_backward_s": both_s,
+        "forward_backward_cpu_s": both_cpu_s,
     }
 
 
@@ -101,7 +111,7 @@ def peak_memory(n: int, size: int) -> None:
     (out.color.sum() + out.depth.sum()).backward()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     pairs = count_pairs(gaussians, viewmats, Ks, size, size)
-    print(f"{n} Gaussians, {size}x{size}, {pairs} box pairs: peak RSS {peak / 2**20:.2f} GiB "
+    print(f"{n} Gaussians, {size}x{size}, {pairs} pairs: peak RSS {peak / 2**20:.2f} GiB "
           f"(before the scene: {before / 2**20:.2f} GiB)")
 
 
@@ -120,9 +130,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", type=int, nargs="+", help="square image sizes (CPU; default 128 256 512)")
     parser.add_argument("--gaussians", type=int, nargs="+", help="Gaussian counts")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
     parser.add_argument("--out", type=Path, help="CSV file for the table")
     parser.add_argument("--peak-memory", type=int, nargs=2, metavar=("N", "SIZE"))
     args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
 
     if args.peak_memory:
         peak_memory(*args.peak_memory)
@@ -138,12 +151,15 @@ def main(argv: list[str] | None = None) -> int:
                    for n in args.gaussians or [1000, 5000, 10000, 20000]]
 
     rows = []
-    print(f"{'device':6} {'backend':7} {'N':>7} {'W x H':>11} {'box pairs':>10} {'fwd s':>8} {'fwd+bwd s':>10}")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, load average {os.getloadavg()[0]:.1f}")
+    print(f"{'device':6} {'backend':7} {'N':>7} {'W x H':>11} {'pairs':>10} "
+          f"{'fwd s':>7} {'fwd cpu s':>9} {'fwd+bwd s':>9} {'fwd+bwd cpu s':>13}")
     for n, width, height, backend in configs:
         row = bench(n, width, height, args.device, backend, args.repeats)
         rows.append(row)
-        print(f"{row['device']:6} {backend:7} {n:7d} {f'{width} x {height}':>11} {row['box_pairs']:10d} "
-              f"{row['forward_s']:8.3f} {row['forward_backward_s']:10.3f}", flush=True)
+        print(f"{row['device']:6} {backend:7} {n:7d} {f'{width} x {height}':>11} {row['pairs']:10d} "
+              f"{row['forward_s']:7.3f} {row['forward_cpu_s']:9.3f} {row['forward_backward_s']:9.3f} "
+              f"{row['forward_backward_cpu_s']:13.3f}", flush=True)
     if args.out:
         write_csv(rows, args.out)
     return 0
