@@ -15,6 +15,15 @@ C0 = 0.28209479177387814  # SH band-0 constant
 C1 = 0.4886025119029199  # SH band-1 constant
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # Tiny tensors: a second intra-op thread only adds synchronisation, badly so on shared cores.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def _intrinsics(f, cx, cy, dtype=torch.float64):
     return torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=dtype)
 

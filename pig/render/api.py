@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from .cpu_compositor import DEFAULT_MAX_PAIRS, composite
+from .gsplat_backend import render_gsplat
 from .projection import project_splats
 
 Backend = Literal["auto", "gsplat", "cpu"]
@@ -66,8 +67,6 @@ def render_gaussians(
     backgrounds = _backgrounds(background, c, means)
     chosen = _choose_backend(backend, means)
     if chosen == "gsplat":
-        from .gsplat_backend import render_gsplat
-
         color, alpha, depth = render_gsplat(
             means, quats, scales, opacities, sh, viewmats, Ks, width, height, backgrounds, degree
         )

@@ -5,6 +5,7 @@ the conventions (eps2d, near plane, SH offset) are the ones the CPU compositor r
 """
 from __future__ import annotations
 
+from gsplat import rasterization
 from torch import Tensor
 
 from .projection import EPS2D, FAR_PLANE, NEAR_PLANE
@@ -24,9 +25,7 @@ def render_gsplat(
     sh_degree: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(color (C,H,W,3), alpha (C,H,W,1), expected depth (C,H,W,1)); backgrounds is (C, 3)."""
-    # Imported here: gsplat builds or loads its CUDA extension on first use of the rasterizer.
-    from gsplat import rasterization
-
+    # gsplat loads (or builds) its CUDA extension at the first call, not at import.
     rendered, alpha, _ = rasterization(
         means,
         quats,

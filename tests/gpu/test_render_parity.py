@@ -70,7 +70,8 @@ def _scene(n, width, height, cameras, bases, seed):
         view[:3, :3] = rot
         view[:3, 3] = centre - rot @ centre  # p_cam = R (p - c) + c
         views.append(view)
-        Ks.append(torch.tensor([[focal, 0.0, width / 2 + 3.3 * i], [0.0, focal, height / 2 - 1.7 * i], [0.0, 0.0, 1.0]]))
+        cx, cy = width / 2 + 3.3 * i, height / 2 - 1.7 * i
+        Ks.append(torch.tensor([[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]]))
     background = torch.rand(cameras, 3, generator=g)
     return [means, quats, scales, opacities, sh], torch.stack(views), torch.stack(Ks), background
 
@@ -122,7 +123,9 @@ def test_compositor_matches_gsplat(n, width, height, cameras, bases, sh_degree, 
     ref_out, ref_grads = _render_and_grads(
         params, views, Ks, width, height, background, sh_degree, "gsplat", weights, mask, REFERENCE_DEVICE
     )
-    out, grads = _render_and_grads(params, views, Ks, width, height, background, sh_degree, "cpu", weights, mask, device)
+    out, grads = _render_and_grads(
+        params, views, Ks, width, height, background, sh_degree, "cpu", weights, mask, device
+    )
 
     color_diff = (out[0] - ref_out[0]).abs().amax(dim=-1)
     alpha_diff = (out[1] - ref_out[1]).abs()[..., 0]
