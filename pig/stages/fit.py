@@ -59,6 +59,9 @@ class FitConfig:
     eval_frames: int = 4  # training frames rendered from the novel-view cameras
     checkpoint_minutes: float = 5.0
     seed: int = 0
+    # Torch threads on the CPU; 0 keeps torch's default. One thread avoids OpenMP spin-waiting when
+    # the cores are shared (measured 10x faster under contention, benchmarks/NOTES.md).
+    cpu_threads: int = 0
 
 
 def perturb_params(params: SmplxParams, sigma: float, seed: int) -> SmplxParams:
@@ -152,6 +155,15 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
     """
+    threads = torch.get_num_threads()
+    try:
+        return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, torch.device(device), on_iteration)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, device: torch.device,
+         on_iteration: Callable[[int], None] | None) -> Path:
     profile = load_profile(profile_name)
     overrides = variant_overrides(profile, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -162,7 +174,8 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
     field_cfg = load_section(profile, "field", FieldConfig, overrides.get("field"))
     precond_cfg = load_section(profile, "precond", PrecondConfig, overrides.get("precond"))
     raster = load_section(profile, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
-    device = torch.device(device)
+    if device.type == "cpu" and fit_cfg.cpu_threads > 0:
+        torch.set_num_threads(fit_cfg.cpu_threads)
     output_dir.mkdir(parents=True, exist_ok=True)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"
@@ -175,7 +188,7 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
     spec = {
         "avatar": asdict(avatar_cfg), "field": asdict(field_cfg), "precond": asdict(precond_cfg),
         "body_model_npz": (Path(capture_dir) / "body_model.npz").read_bytes(),
-        "params": asdict(params), "frame_ids": list(train["frames"]), "variant": variant,
+        "params": asdict(params), "frame_ids": [int(f) for f in train["frames"]], "variant": variant,
     }
     torch.manual_seed(fit_cfg.seed)
     model = build_avatar(spec).to(device)
