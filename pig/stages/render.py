@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from pig.config import load_profile, load_section
 from pig.data.exr import write_exr
+from pig.field.precondition import PreconditionedTensor
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig.stages._io import write_json, write_png
 from pig.stages.evaluate import EvaluateConfig, resolve_device
@@ -43,6 +44,19 @@ def model_megabytes(model: torch.nn.Module, num_anchors: int, level_size: int) -
         share = level_size / num_anchors if tensor.dim() and tensor.shape[0] == num_anchors else 1.0
         total += tensor.numel() * tensor.element_size() * share
     return total / 2**20
+
+
+@torch.no_grad()
+def bake_preconditioning(model: torch.nn.Module) -> None:
+    """Store each preconditioned tensor's current value x in place of its optimised variable.
+
+    Rendering needs only x; with the substitution form x = (I + lambda L)^-1 u would otherwise be
+    solved again for every frame, which is training machinery, not per-frame work."""
+    for module in model.modules():
+        if isinstance(module, PreconditionedTensor) and module.form != "none":
+            value = module().detach().clone()
+            module.form = "none"
+            module.param = torch.nn.Parameter(value, requires_grad=False)
 
 
 class SplitRenderer:
@@ -100,6 +114,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     cameras, frames = capture.split[split]["cameras"], [int(f) for f in capture.split[split]["frames"]]
     device = resolve_device(cfg.device)
     model = load_avatar(checkpoint, device).eval()
+    bake_preconditioning(model)
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
     tmp = output.with_name(f".{output.name}.{os.getpid()}.tmp")
     levels = range(model.num_levels)
