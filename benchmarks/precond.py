@@ -222,14 +222,10 @@ def toy_grid_problem(device: str, resolutions: list[int], features: int, n_point
     lo, hi = train.min(0).values.cpu(), train.max(0).values.cpu()
     cfg = PrecondConfig()
     lambdas, paper_lrs = cfg.grid_lambdas(len(resolutions)), cfg.grid_lrs(len(resolutions))
-    batches = torch.Generator(device=device).manual_seed(5)
-
-    def make(form):
-        grid = LatentGrid(resolutions, features, lo, hi, 0.1, lambdas=lambdas, form=form).to(device)
-        return lambda: list(grid.levels), grid
 
     def problem(form):
-        factory, grid = make(form)
+        grid = LatentGrid(resolutions, features, lo, hi, 0.1, lambdas=lambdas, form=form).to(device)
+        batches = torch.Generator(device=device).manual_seed(5)  # every run sees the same batches
 
         def loss_fn(levels, step):
             idx = torch.randint(0, n_points, (batch,), device=device, generator=batches)
@@ -240,7 +236,7 @@ def toy_grid_problem(device: str, resolutions: list[int], features: int, n_point
             test_rmse = (grid(test, levels) - clean_test).square().mean().sqrt().item()
             return train_loss, test_rmse
 
-        return factory, loss_fn, eval_fn
+        return lambda: list(grid.levels), loss_fn, eval_fn
 
     return problem, paper_lrs
 
@@ -252,10 +248,12 @@ def toy_anchor_problem(device: str, n: int, k: int, solver: str):
     noisy = clean + 0.01 * torch.randn(n, 3, generator=torch.Generator().manual_seed(9)).to(device)
     lap = knn_laplacian(start.cpu().double().numpy(), k)
     system = FactorizedSystem(lap, 8.0) if solver == "factorized" else CGSystem(lap, 8.0, tol=1e-5, max_iter=1000)
-    subsets = torch.Generator(device=device).manual_seed(10)
 
     def problem(form):
+        if isinstance(system, CGSystem):
+            system.reset()  # no warm start carried over from the previous run
         anchors = PreconditionedTensor(start, None if form == "none" else system, form)
+        subsets = torch.Generator(device=device).manual_seed(10)  # every run sees the same subsets
 
         def loss_fn(params, step):
             seen = torch.rand(n, device=device, generator=subsets) < 0.125
