@@ -10,7 +10,9 @@ Forms (`PrecondConfig.form`, profile section `precond`):
   and a gradient step on u moves x by -lr (I + lambda L)^-2 dL/dx: again Eqs. 4-5 under gradient descent.
 - "none": a plain parameter (the no-preconditioning ablation).
 The forms differ under Adam, whose per-element scaling sits between the two solves; UniformAdam
-(pig.field.optim) keeps one scale per tensor and so keeps the filter. See benchmarks/NOTES.md.
+(pig.field.optim) keeps one scale per tensor and so keeps the filter. The default, "substitute" with
+Adam at the paper's learning rates, is the one the toy fits of benchmarks/precond.py chose
+(benchmarks/NOTES.md, "Preconditioning").
 
 Use: `p = PreconditionedTensor(x0, system, form)`; `p()` returns x (differentiable); optimise
 `p.param`; `p.set_value(x)` overwrites x. Call `p()` once per optimisation step and reuse the result:
@@ -43,7 +45,7 @@ class PrecondConfig:
     """Profile section `precond`: how the latent grid and the anchors are preconditioned and optimised."""
 
     form: Form = "substitute"
-    optimizer: Literal["adam", "uniform_adam", "sgd"] = "uniform_adam"
+    optimizer: Literal["adam", "uniform_adam", "sgd"] = "adam"
     grid_lr: float = 1e-2  # level g (0 = coarsest) uses grid_lr * grid_lr_growth ** g
     grid_lr_growth: float = 1.5
     grid_lambda: float = 2.0  # level g uses grid_lambda * grid_lambda_growth ** g
