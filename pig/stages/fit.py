@@ -91,7 +91,7 @@ def _load_lpips(cfg: FitConfig, device):
 
 def _write_log(path: Path, rows: list[dict]) -> None:
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=LOG_COLUMNS, extrasaction="ignore")
+    writer = csv.DictWriter(buffer, fieldnames=LOG_COLUMNS, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
