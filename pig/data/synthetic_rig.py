@@ -52,6 +52,14 @@ def make_ring(count: int, width: int, height: int, centre: np.ndarray, extent: f
     return cameras
 
 
+def _undistort_points(pixels: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Iterated undistortion to 1e-12: OpenCV 4 names it undistortPointsIter, OpenCV 5 (the GPU
+    machine's build) folded the criteria into undistortPoints."""
+    if hasattr(cv2, "undistortPointsIter"):
+        return cv2.undistortPointsIter(pixels, K, dist, None, None, UNDISTORT_CRITERIA)
+    return cv2.undistortPoints(pixels, K, dist, R=None, P=None, criteria=UNDISTORT_CRITERIA)
+
+
 def pixel_rays(camera: RawCamera, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Origin (3,) and unit world directions (H, W, s*s, 3) through `s x s` sub-pixel samples.
 
@@ -63,7 +71,7 @@ def pixel_rays(camera: RawCamera, supersample: int = 1) -> tuple[np.ndarray, np.
     v = (np.arange(camera.height)[:, None] + offsets[None, :]).ravel()
     uu, vv = np.meshgrid(u, v)  # (H*s, W*s)
     pixels = np.stack([uu, vv], axis=-1).reshape(-1, 1, 2).astype(np.float64)
-    normalised = cv2.undistortPointsIter(pixels, camera.K, camera.dist, None, None, UNDISTORT_CRITERIA).reshape(-1, 2)
+    normalised = _undistort_points(pixels, camera.K, camera.dist).reshape(-1, 2)
     directions = np.concatenate([normalised, np.ones((len(normalised), 1))], axis=1) @ camera.R  # R^T d per row
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     directions = directions.reshape(camera.height, s, camera.width, s, 3).transpose(0, 2, 1, 3, 4)
