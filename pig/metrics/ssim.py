@@ -36,6 +36,10 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0) -> torch
         raise ValueError(f"ssim expects two (B, C, H, W) tensors of one shape, found {tuple(x.shape)} and {tuple(y.shape)}")
     if min(x.shape[-2:]) < 2 * RADIUS + 1:
         raise ValueError(f"ssim needs images of at least {2 * RADIUS + 1} x {2 * RADIUS + 1} pixels, found {tuple(x.shape[-2:])}")
+    # Contiguous NCHW: a permuted (B, H, W, C) image (the loss passes those) sends the grouped
+    # convolutions to cuDNN's NHWC engine with layout transforms, measured ~5 ms per call at 4 x 1330 x 1150
+    # on an H200 (benchmarks/NOTES.md, "Fit stage on the GPU: where the time goes").
+    x, y = x.contiguous(), y.contiguous()
     taps = gaussian_window(x.dtype, x.device)
     # One batched filter pass over the five moments instead of five passes.
     stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)

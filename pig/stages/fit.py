@@ -12,6 +12,7 @@ import math
 import os
 import sys
 import time
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -150,20 +151,24 @@ class HeldOut:
 
 
 def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", variant: str = "pig", device: str = "cpu",
-        on_iteration: Callable[[int], None] | None = None) -> Path:
+        on_iteration: Callable[[int], None] | None = None,
+        phase: Callable[[str], AbstractContextManager] | None = None) -> Path:
     """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
+    `phase(name)` wraps each part of an iteration ("sample", "model", "render", "loss", "backward",
+    "step"; render and loss once per view batch): a hook for profilers (benchmarks/fit_gpu.py).
     """
     threads = torch.get_num_threads()
     try:
-        return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, torch.device(device), on_iteration)
+        return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, torch.device(device), on_iteration,
+                    phase or (lambda name: nullcontext()))
     finally:
         torch.set_num_threads(threads)
 
 
 def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, device: torch.device,
-         on_iteration: Callable[[int], None] | None) -> Path:
+         on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager]) -> Path:
     profile = load_profile(profile_name)
     overrides = variant_overrides(profile, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -216,24 +221,31 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
                  "heldout_psnr": held_out.psnr(model, raster)}]
     progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
     for i in progress:
-        lod = int(torch.randint(model.num_levels, (1,), generator=generator))
-        picks = sample_batch(generator, model.num_timesteps, train["cameras"], fit_cfg.timesteps, fit_cfg.views)
-        g = model(torch.tensor([step for step, _ in picks]), lod)
+        with phase("sample"):
+            lod = int(torch.randint(model.num_levels, (1,), generator=generator))
+            picks = sample_batch(generator, model.num_timesteps, train["cameras"], fit_cfg.timesteps, fit_cfg.views)
+            batches = [views.batch(step, cams) for step, cams in picks]
+        with phase("model"):
+            g = model(torch.tensor([step for step, _ in picks]), lod)
         num_views = sum(len(cams) for _, cams in picks)
         totals: dict[str, torch.Tensor] = {}
-        for k, (step, cams) in enumerate(picks):
-            for vb in views.batch(step, cams):
-                out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
-                                       vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
-                band = boundary_band(vb.masks, band_radius(vb.height, fit_cfg.band_radius_px, fit_cfg.band_reference_height))
-                terms = image_loss(out.color, vb.images, band, background, weights, lpips)
-                for key, value in terms.items():
-                    totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
-        for opt in optimizers:
-            opt.zero_grad(set_to_none=True)
-        totals["total"].backward()
-        for opt in optimizers:
-            opt.step()
+        for k, step_batches in enumerate(batches):
+            for vb in step_batches:
+                with phase("render"):
+                    out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
+                                           vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
+                with phase("loss"):
+                    band = boundary_band(vb.masks, band_radius(vb.height, fit_cfg.band_radius_px, fit_cfg.band_reference_height))
+                    terms = image_loss(out.color, vb.images, band, background, weights, lpips)
+                    for key, value in terms.items():
+                        totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
+        with phase("backward"):
+            for opt in optimizers:
+                opt.zero_grad(set_to_none=True)
+            totals["total"].backward()
+        with phase("step"):
+            for opt in optimizers:
+                opt.step()
 
         iteration = i + 1
         wall = wall_before + time.perf_counter() - started
