@@ -1,4 +1,6 @@
 """BodyModel skinning against a plain float64 per-vertex reference, analytic poses, and parameter readers."""
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -294,3 +296,14 @@ def test_params_save_load_round_trip(tmp_path, rng):
     np.testing.assert_array_equal(frames, [3, 5, 7, 9])
     for name in ("full_pose", "betas", "expression", "transl"):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(params, name))
+
+
+def test_betas_rows_that_differ_are_reported_with_the_file(rng):
+    arrays = thuman_arrays(rng, betas_rows=4)
+    with pytest.warns(UserWarning, match=r"subject/smpl_params.npz: 'betas' rows differ"):
+        params = from_thuman(arrays, "subject/smpl_params.npz")
+    np.testing.assert_array_equal(params.betas, arrays["betas"][0])
+    arrays["betas"] = np.repeat(arrays["betas"][:1], 4, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from_thuman(arrays, "subject/smpl_params.npz")

@@ -173,3 +173,22 @@ def test_short_fit_learns_and_resumes_to_the_same_result(capture, tmp_path):
     model = load_avatar(resumed)
     means, quats, scales, opacities, sh = model.gaussians(0, model.num_levels - 1)
     assert means.shape[0] == model.level_sizes[-1] and torch.isfinite(means).all()
+
+
+def test_single_timestep_and_single_level_decode_and_train(standin):
+    """T = 1 and L = 1: time embedding and LOD input are defined as zero-width / zero; gradients still flow."""
+    params = SmplxParams(np.zeros((1, 55, 3)), np.zeros(10), np.zeros((1, 10)), np.zeros((1, 3)))
+    cfg = AvatarConfig(num_anchors=100, levels=1, sh_degree=0, hidden_layers=1, hidden_width=16)
+    spec = dict(avatar=asdict(cfg), field=asdict(FieldConfig(resolutions=[4], features=4)), precond=asdict(PrecondConfig()),
+                body_model_npz=standin, params=asdict(params), frame_ids=[7], variant="pig")
+    torch.manual_seed(0)
+    model = build_avatar(spec)
+    assert model.num_levels == 1 and model.level_sizes == [100]
+    g = model(torch.tensor([0]), 0)
+    assert g.means.shape == (1, 100, 3) and g.sh.shape == (1, 100, 1, 3)
+    for value in (g.means, g.quats, g.scales, g.opacities, g.sh):
+        assert torch.isfinite(value).all()
+    (g.means.sum() + g.sh.sum() + g.opacities.sum()).backward()
+    for name, module in (("grid", model.grid), ("decoders", model.decoder)):
+        assert sum(p.grad.abs().sum().item() for p in module.parameters() if p.grad is not None) > 0, name
+    assert model.timestep_of_frame(7) == 0 and model.nearest_timestep(torch.zeros(55, 3)) == 0

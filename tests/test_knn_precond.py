@@ -132,6 +132,11 @@ def test_cg_cap_is_reported(rng):
     with pytest.warns(CGNotConverged, match="iteration cap"):
         system.solve(torch.from_numpy(rng.normal(size=(300, 2))))
     assert system.last_iterations == 3 and system.last_residual > 1e-12
+    # Every miss is reported: each message carries its residual, so Python's once-per-message filter never hides one.
+    with warnings.catch_warnings(record=True) as caught:
+        for _ in range(3):
+            system.solve(torch.from_numpy(rng.normal(size=(300, 2))))
+    assert sum(issubclass(w.category, CGNotConverged) for w in caught) == 3
 
 
 def test_cg_zero_column_is_zero_without_warning(rng):

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import warnings
+
 import numpy as np
 
 from .model import NUM_JOINTS
@@ -103,6 +105,8 @@ def _first_row(value, key, n, path) -> np.ndarray:
     if value.ndim == 1:
         return value
     if value.ndim == 2 and value.shape[0] in (1, n):
+        if np.abs(value - value[0]).max() > 1e-6:
+            warnings.warn(f"{path}: '{key}' rows differ (max {np.abs(value - value[0]).max():.3g}); using row 0 for every frame")
         return value[0]
     raise ParamsError(f"{path}: '{key}' has shape {value.shape}, expected (nb,), (1, nb) or ({n}, nb)")
 

@@ -67,10 +67,14 @@ def _load_metric(build, what: str) -> tuple[torch.nn.Module | None, str]:
 def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lpips_net, inception, device):
     """Per-image metrics (DataFrame), summary (dict) and Inception features (render, truth) of one split at one LOD."""
     cameras, frames = capture.split[split]["cameras"], capture.split[split]["frames"]
-    pairs = [(c, f) for f in frames for c in cameras]
+    # Batches never mix image sizes (DNA-Rendering's two camera groups differ).
+    by_size: dict[tuple[int, int], list] = {}
+    for f in frames:
+        for c in cameras:
+            by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
+    batches = [pairs[i:i + cfg.batch_size] for pairs in by_size.values() for i in range(0, len(pairs), cfg.batch_size)]
     rows, fake_features, real_features = [], [], []
-    for start in tqdm(range(0, len(pairs), cfg.batch_size), desc=f"evaluate {split} {level_dir.name}", unit="batch"):
-        batch = pairs[start:start + cfg.batch_size]
+    for batch in tqdm(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch"):
         renders = np.stack([read_png(level_dir / cam / f"{frame:08d}.png") for cam, frame in batch])
         truths = np.stack([capture.image(cam, frame) * capture.mask(cam, frame)[..., None] for cam, frame in batch])
         if renders.shape != truths.shape:

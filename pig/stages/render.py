@@ -11,6 +11,7 @@ import os
 import platform
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -59,18 +60,35 @@ def bake_preconditioning(model: torch.nn.Module) -> None:
             module.param = torch.nn.Parameter(value, requires_grad=False)
 
 
+@dataclass
+class CameraGroup:
+    """Cameras of one image size, rendered in one rasterizer call."""
+
+    names: list[str]
+    width: int
+    height: int
+    viewmats: torch.Tensor  # (C, 4, 4)
+    Ks: torch.Tensor  # (C, 3, 3)
+
+
 class SplitRenderer:
     """Renders the avatar at a capture frame: the training timestep for training frames, else the
     nearest training timestep with the capture's pose driving the transport."""
 
     def __init__(self, model, capture, cameras: list[str], device: torch.device, rasterizer: RasterizerConfig):
         self.model, self.capture, self.device, self.rasterizer = model, capture, device, rasterizer
-        cams = [capture.cameras[c] for c in cameras]
-        self.width, self.height = cams[0].width, cams[0].height
-        if any((c.width, c.height) != (self.width, self.height) for c in cams):
-            raise ValueError(f"cameras {cameras} differ in image size; render them as separate splits")
-        self.viewmats = torch.as_tensor(np.stack([c.viewmat() for c in cams]), dtype=torch.float32, device=device)
-        self.Ks = torch.as_tensor(np.stack([c.K for c in cams]), dtype=torch.float32, device=device)
+        # One rasterizer call per image size: DNA-Rendering's two camera groups differ in resolution.
+        by_size: dict[tuple[int, int], list[str]] = {}
+        for name in cameras:
+            by_size.setdefault((capture.cameras[name].width, capture.cameras[name].height), []).append(name)
+        self.groups = [
+            CameraGroup(
+                names, width, height,
+                torch.as_tensor(np.stack([capture.cameras[c].viewmat() for c in names]), dtype=torch.float32, device=device),
+                torch.as_tensor(np.stack([capture.cameras[c].K for c in names]), dtype=torch.float32, device=device),
+            )
+            for (width, height), names in by_size.items()
+        ]
         self.row_of_frame = {int(f): i for i, f in enumerate(capture.frames)}
 
     def timestep_and_pose(self, frame: int):
@@ -80,13 +98,18 @@ class SplitRenderer:
         return self.model.nearest_timestep(pose.full_pose[0]), pose
 
     @torch.no_grad()
-    def render(self, frame: int, lod: int, views: slice = slice(None)):
+    def render(self, frame: int, lod: int, first_view_only: bool = False):
+        """Yields (camera name, RenderResult of that group, index in the group) for every camera."""
         timestep, pose = self.timestep_and_pose(frame)
-        means, quats, scales, opacities, sh = (t.float() for t in self.model.gaussians(timestep, lod, pose))
-        return render_gaussians(
-            means, quats, scales, opacities, sh, self.viewmats[views], self.Ks[views], self.width, self.height,
-            torch.tensor(BLACK, device=self.device), backend=self.rasterizer.backend, max_pairs=self.rasterizer.max_pairs,
-        )
+        gaussians = [t.float() for t in self.model.gaussians(timestep, lod, pose)]
+        for group in self.groups[:1] if first_view_only else self.groups:
+            views = slice(0, 1) if first_view_only else slice(None)
+            result = render_gaussians(
+                *gaussians, group.viewmats[views], group.Ks[views], group.width, group.height,
+                torch.tensor(BLACK, device=self.device), backend=self.rasterizer.backend, max_pairs=self.rasterizer.max_pairs,
+            )
+            for index, name in enumerate(group.names[views]):
+                yield name, result, index
 
     def seconds_per_frame(self, frames: list[int], lod: int, count: int) -> float:
         """Mean wall time of the whole per-frame work for one view, after one warm-up frame."""
@@ -96,8 +119,8 @@ class SplitRenderer:
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
             start = time.perf_counter()
-            result = self.render(frame, lod, slice(0, 1))
-            result.color.sum().item()  # forces completion on any device
+            for _, result, _ in self.render(frame, lod, first_view_only=True):
+                result.color.sum().item()  # forces completion on any device
             if i > 0 or len(chosen) == 1:
                 times.append(time.perf_counter() - start)
         return float(np.mean(times))
@@ -122,8 +145,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
         for lod in levels:
             level_dir = tmp / f"lod{lod}"
             for frame in frames:
-                result = renderer.render(frame, lod)
-                for c, cam in enumerate(cameras):
+                for cam, result, c in renderer.render(frame, lod):
                     write_png(level_dir / cam / f"{frame:08d}.png", result.color[c].cpu().numpy())
                     write_exr(level_dir / cam / f"{frame:08d}.exr",
                               {"A": result.alpha[c, ..., 0].cpu().numpy(), "Z": result.depth[c, ..., 0].cpu().numpy()})
@@ -135,8 +157,8 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
                 "seconds_per_frame": seconds,
                 "fps": 1.0 / seconds,
                 "device": device_name(device),
-                "width": renderer.width,
-                "height": renderer.height,
+                "width": renderer.groups[0].width,
+                "height": renderer.groups[0].height,
             })
     if output.exists():
         shutil.rmtree(output)

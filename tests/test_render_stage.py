@@ -1,0 +1,85 @@
+"""Render and evaluate stages on a split whose cameras differ in image size (as DNA-Rendering's do)."""
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from pig.render.api import RasterizerConfig
+from pig.stages._io import read_png
+from pig.stages.evaluate import EvaluateConfig, evaluate_split
+from pig.stages.render import render_split
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    from pig.config import load_profile
+    from pig.data.synthetic import SyntheticConfig, generate_capture
+    from pig.stages.fit import fit
+    from pig.stages.preprocess import main as preprocess
+
+    root = tmp_path_factory.mktemp("renderstage")
+    raw = generate_capture(root / "raw", SyntheticConfig(cameras=5, frames=4, width=48, height=48, workers=1), progress=False)
+    capture = root / "capture"
+    preprocess(["--input", str(raw), "--output", str(capture), "--profile", "test", "--format", "thuman4",
+                "--body-model", str(raw / "body_model.npz"), "--no-progress"])
+    profile = load_profile("test")
+    profile.pop("_path")
+    profile["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
+    (root / "profile.yaml").write_text(yaml.safe_dump(profile))
+    checkpoint = fit(capture, root / "pig", str(root / "profile.yaml"))
+    return capture, checkpoint
+
+
+def _halve_camera(capture, camera: str) -> None:
+    """Rewrite one camera of a preprocessed capture at half resolution (K with the pixel-centre convention)."""
+    cameras = json.loads((capture / "cameras.json").read_text())
+    entry = cameras[camera]
+    K = np.asarray(entry["K"], float)
+    K[:2, :2] *= 0.5
+    K[:2, 2] = (K[:2, 2] + 0.5) * 0.5 - 0.5
+    entry.update(K=K.tolist(), width=entry["width"] // 2, height=entry["height"] // 2)
+    (capture / "cameras.json").write_text(json.dumps(cameras))
+    size = (entry["width"], entry["height"])
+    for kind, interpolation in (("images", cv2.INTER_AREA), ("masks", cv2.INTER_NEAREST)):
+        for path in (capture / kind / camera).glob("*.png"):
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(path), cv2.resize(image, size, interpolation=interpolation))
+
+
+@pytest.mark.slow
+def test_render_and_evaluate_a_split_with_two_image_sizes(fitted, tmp_path):
+    source, checkpoint = fitted
+    capture = tmp_path / "capture"
+    shutil.copytree(source, capture)
+    split = json.loads((capture / "split.json").read_text())["novel_pose"]
+    assert len(split["cameras"]) >= 2
+    small = split["cameras"][0]
+    _halve_camera(capture, small)
+    cfg = EvaluateConfig(timing_frames=1)
+    renders = tmp_path / "renders" / "novel_pose"
+    render_split(checkpoint, capture, "novel_pose", renders, cfg, RasterizerConfig(backend="cpu"))
+
+    cameras = json.loads((capture / "cameras.json").read_text())
+    for cam in split["cameras"]:
+        for frame in split["frames"]:
+            image = read_png(renders / "lod0" / cam / f"{int(frame):08d}.png")
+            assert image.shape[:2] == (cameras[cam]["height"], cameras[cam]["width"]), cam
+    assert cameras[small]["width"] * 2 == cameras[split["cameras"][1]]["width"]
+
+    csvs = evaluate_split(capture, renders, "novel_pose", tmp_path / "metrics", cfg)
+    table = pd.read_csv(csvs[0])
+    assert len(table) == len(split["cameras"]) * len(split["frames"])
+    assert set(table["camera"]) == set(split["cameras"])
+    # Each row is scored against its own camera's ground truth, at that camera's size.
+    from pig.data.capture import Capture
+
+    loaded = Capture.load(capture)
+    for row in table.itertuples():
+        render = read_png(renders / "lod0" / row.camera / f"{int(row.frame):08d}.png").astype(np.float64)
+        truth = loaded.image(row.camera, int(row.frame)) * loaded.mask(row.camera, int(row.frame))[..., None]
+        expected = 10 * np.log10(1.0 / np.mean((render - truth) ** 2))
+        assert row.psnr == pytest.approx(expected, abs=1e-3), row.camera
