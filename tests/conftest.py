@@ -12,3 +12,17 @@ def rng():
     import numpy as np
 
     return np.random.default_rng(0)
+
+
+@pytest.fixture(scope="session")
+def small_capture(tmp_path_factory):
+    """A preprocessed synthetic capture (5 cameras x 4 frames at 48 px) for fit and render-stage tests."""
+    from pig.data.synthetic import SyntheticConfig, generate_capture
+    from pig.stages.preprocess import main as preprocess
+
+    root = tmp_path_factory.mktemp("smallcap")
+    raw = generate_capture(root / "raw", SyntheticConfig(cameras=5, frames=4, width=48, height=48, workers=1), progress=False)
+    out = root / "capture"
+    preprocess(["--input", str(raw), "--output", str(out), "--profile", "test", "--format", "thuman4",
+                "--body-model", str(raw / "body_model.npz"), "--no-progress"])
+    return out

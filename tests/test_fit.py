@@ -115,18 +115,6 @@ def test_model_outputs_levels_and_novel_pose_override(standin):
 
 # ---- fit stage on a generated capture (slow: generation + two short fits) ----
 
-@pytest.fixture(scope="module")
-def capture(tmp_path_factory):
-    from pig.data.synthetic import SyntheticConfig, generate_capture
-    from pig.stages.preprocess import main as preprocess
-
-    root = tmp_path_factory.mktemp("fitcap")
-    raw = generate_capture(root / "raw", SyntheticConfig(cameras=5, frames=4, width=48, height=48, workers=1), progress=False)
-    out = root / "capture"
-    preprocess(["--input", str(raw), "--output", str(out), "--profile", "test", "--format", "thuman4",
-                "--body-model", str(raw / "body_model.npz"), "--no-progress"])
-    return out
-
 
 def _profile(tmp_path, **fit):
     from pig.config import load_profile
@@ -140,12 +128,13 @@ def _profile(tmp_path, **fit):
 
 
 @pytest.mark.slow
-def test_short_fit_learns_and_resumes_to_the_same_result(capture, tmp_path):
+def test_short_fit_learns_and_resumes_to_the_same_result(small_capture, tmp_path):
     import pandas as pd
 
     from pig.stages.fit import fit
 
     profile = _profile(tmp_path, iterations=30, eval_every=15, checkpoint_minutes=0.0)
+    capture = small_capture
     reference = fit(capture, tmp_path / "full", profile)
     log = pd.read_csv(tmp_path / "full" / "train_log.csv")
     assert log["iteration"].iloc[-1] == 30 and (tmp_path / "full" / "train_log.png").exists()

@@ -15,23 +15,16 @@ from pig.stages.render import render_split
 
 
 @pytest.fixture(scope="module")
-def fitted(tmp_path_factory):
+def fitted(small_capture, tmp_path_factory):
     from pig.config import load_profile
-    from pig.data.synthetic import SyntheticConfig, generate_capture
     from pig.stages.fit import fit
-    from pig.stages.preprocess import main as preprocess
 
     root = tmp_path_factory.mktemp("renderstage")
-    raw = generate_capture(root / "raw", SyntheticConfig(cameras=5, frames=4, width=48, height=48, workers=1), progress=False)
-    capture = root / "capture"
-    preprocess(["--input", str(raw), "--output", str(capture), "--profile", "test", "--format", "thuman4",
-                "--body-model", str(raw / "body_model.npz"), "--no-progress"])
     profile = load_profile("test")
     profile.pop("_path")
     profile["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
     (root / "profile.yaml").write_text(yaml.safe_dump(profile))
-    checkpoint = fit(capture, root / "pig", str(root / "profile.yaml"))
-    return capture, checkpoint
+    return small_capture, fit(small_capture, root / "pig", str(root / "profile.yaml"))
 
 
 def _halve_camera(capture, camera: str) -> None:
