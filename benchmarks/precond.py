@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import time
 import warnings
@@ -37,6 +36,7 @@ from pig.field.latent_grid import LatentGrid
 from pig.field.lattice_solve import LatticeSystem, path_laplacian_eigenvalues
 from pig.field.optim import build_optimizer
 from pig.field.precondition import PrecondConfig, PreconditionedTensor
+from pig.stages._io import write_figure, write_text
 
 FORMS = ("none", "filter", "substitute")
 OPTIMIZERS = ("adam", "uniform_adam", "sgd")
@@ -318,9 +318,7 @@ def bench_toys(device: str, quick: bool) -> tuple[pd.DataFrame, pd.DataFrame]:
 
 # ---------------------------------------------------------------- output
 def write_atomic_csv(frame: pd.DataFrame, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    frame.to_csv(tmp, index=False)
-    os.replace(tmp, path)
+    write_text(path, frame.to_csv(index=False))
 
 
 def plot(grid: pd.DataFrame, knn: pd.DataFrame, curves: pd.DataFrame, out: Path) -> None:
@@ -344,10 +342,7 @@ def plot(grid: pd.DataFrame, knn: pd.DataFrame, curves: pd.DataFrame, out: Path)
     ax.set(xlabel="seconds per solve", ylabel="relative error vs spsolve float64", title=f"KNN (I + 8 L)^-1, N={knn.N.max()}, 3 channels")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    tmp = out / "solve_error_vs_time.tmp.png"
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, out / "solve_error_vs_time.png")
-    plt.close(fig)
+    write_figure(out / "solve_error_vs_time.png", fig, dpi=120)
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     last = curves.sort_values("step").groupby(["problem", "form", "optimizer", "lr_mult"]).tail(1)
@@ -362,10 +357,7 @@ def plot(grid: pd.DataFrame, knn: pd.DataFrame, curves: pd.DataFrame, out: Path)
         ax.set(xlabel="wall seconds (optimisation only)", ylabel="held-out error vs clean target", title=f"toy {name} fit (best lr per curve)")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    tmp = out / "toy_loss_vs_time.tmp.png"
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, out / "toy_loss_vs_time.png")
-    plt.close(fig)
+    write_figure(out / "toy_loss_vs_time.png", fig, dpi=120)
 
 
 def main(argv=None) -> int:

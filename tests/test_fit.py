@@ -1,6 +1,5 @@
 """Avatar model + fit stage: masked loss, gradient flow to every group, novel-pose override, short fit, resume."""
 from dataclasses import asdict
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -8,7 +7,7 @@ import pytest
 import torch
 import yaml
 
-from pig.avatar.build import build_avatar, build_optimizers
+from pig.avatar.build import build_avatar
 from pig.avatar.checkpoint import load_avatar
 from pig.avatar.config import AvatarConfig
 from pig.avatar.losses import band_radius, boundary_band, image_loss

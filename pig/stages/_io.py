@@ -1,6 +1,6 @@
-"""Atomic file writing for the render / evaluate / tables stages: write a temporary name, then rename.
+"""Atomic file writing for the stages and benchmarks: write a temporary name, then rename.
 
-A killed stage never leaves a half-written PNG, CSV or JSON under its final name.
+A killed stage never leaves a half-written PNG, CSV, JSON or plot under its final name.
 """
 from __future__ import annotations
 
@@ -43,6 +43,20 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
             raise OSError(f"{path}: OpenCV could not write the PNG")
         os.replace(tmp, path)
     finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_figure(path: str | Path, figure, dpi: float | None = None) -> None:
+    """Save a matplotlib figure (format from the suffix) and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    tmp = _temporary(path)
+    try:
+        figure.savefig(tmp, dpi=dpi)
+        os.replace(tmp, path)
+    finally:
+        plt.close(figure)
         tmp.unlink(missing_ok=True)
 
 

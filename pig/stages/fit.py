@@ -9,7 +9,6 @@ import argparse
 import csv
 import io
 import math
-import os
 import sys
 import time
 from contextlib import AbstractContextManager, nullcontext
@@ -34,6 +33,7 @@ from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.metrics.psnr import psnr
 from pig.render.api import RasterizerConfig, render_gaussians
+from pig.stages._io import write_figure, write_text
 
 LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr"]
 
@@ -95,9 +95,7 @@ def _write_log(path: Path, rows: list[dict]) -> None:
     writer = csv.DictWriter(buffer, fieldnames=LOG_COLUMNS, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(buffer.getvalue())
-    os.replace(tmp, path)
+    write_text(path, buffer.getvalue())
 
 
 def _plot_log(path: Path, rows: list[dict]) -> None:
@@ -118,10 +116,7 @@ def _plot_log(path: Path, rows: list[dict]) -> None:
     for ax in (ax_loss, ax_psnr):
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
+    write_figure(path, fig, dpi=100)
 
 
 class HeldOut:

@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from pig.stages._io import write_text  # noqa: E402
+from pig.stages._io import write_figure, write_text  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "fid")
@@ -132,11 +132,7 @@ def training_plot(logs: dict[str, list[Path]], path: Path, title: str) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    tmp.replace(path)
+    write_figure(path, fig)
 
 
 def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], variants: list[str], output: Path) -> None:
