@@ -1,5 +1,37 @@
 """DNA-Rendering .smc reader and writer: round trips against the source capture, conventions checked
-against independent references (raw HDF5 values, explicit matrix algebra), malformed files."""
+against independent references (raw HDF5 values, explicit matrix algebra), malformed files, and the
+access pattern of the dataset's own reader.
+
+The official reader's accesses, re-expressed below as plain h5py reads (`_official_*`; facts only, no
+code taken). Sources, read through the search tool:
+  [R] DNA-Rendering/DNA-Rendering scripts/3DGS/SMCReader.py @ bd66a27e920f8582cff0587a55cc5e0bd381bb10
+  [D] DNA-Rendering/DNA-Rendering scripts/3DGS/dataset_readers.py @ 1e41b621f13072400401ca787b7182492f7c3374
+  [P] DNA-Rendering/DNA-Rendering.github.io inner-download.html @ 03fd9accae4dccf091294b4608b5d4465ca5d61e
+  [C] a public copy of [R] (repository not resolvable by the search tool) whose constructor also reads
+      `ethnicity`; [R] has that line commented out.
+- SMCReader(path) [R], on the main and on the annotation file alike: if the root has any attribute, reads
+  attrs actor_id, performance_id, age, gender, height, weight (+ ethnicity [C]); [P] documents them as
+  int, int, int, str ("male"/"female"), int, int, str ("yellow"/"white"/"black"/"brown"), plus
+  text_label (str, a JSON file name; no reader reads it). For each of Camera_5mp, Camera_12mp, Kinect
+  present: group attrs num_device, num_frame, resolution ([P]: int, int, (height, width)).
+- get_Calibration(cam) [R]: Camera_Parameter/f"{int(cam):02d}"/{D, K, RT, Color_Calibration}[()], all four
+  unconditionally; get_Calibration_all(): the same four under every key of Camera_Parameter. [P]: K
+  double (3, 3), D double (5,), RT double (4, 4) camera-to-world, Color_Calibration double (3, 3), BGR.
+- get_img(group, cam, "color", frame) [R]: asserts group in (Camera_12mp, Camera_5mp, Kinect), str(cam) in
+  the group, "color" in group[cam], str(frame) in its keys; cv2.imdecode(bytes, IMREAD_COLOR) (BGR).
+  frame None: the frame keys as sorted ints, one image each, np.stack.
+- get_mask(cam, frame) [R]: asserts str(frame) in Mask/str(cam)/mask; imdecode IMREAD_COLOR; np.max over axis 2.
+- get_SMPLx(frame) [R]: t_frame = SMPLx/betas[()].shape[0]; an int frame asserts frame < t_frame; a list
+  or None (range(t_frame)) index too; returns SMPLx/{betas, expression, fullpose, transl}[()][frames, ...]
+  and SMPLx/scale[()]. So betas need one row per frame ([P] still says "beta" (1, 10)).
+- get_Keypoints2d/3d (Keypoints_2D/f"{cam:02d}", Keypoints_3D/keypoints3d) and get_Kinect_Calibration*
+  (Calibration/Kinect) print a notice and return None when the group is absent.
+- readCamerasDNARendering [D]: actor_info["gender"] of the main file builds SMPLX(gender=...);
+  get_SMPLx(Frame_id=1), each of betas, expression, fullpose, transl given a batch axis, fullpose sliced
+  [:, 0], [:, 1:22], [:, 22], [:, 23], [:, 24], [:, 25:40], [:, 40:55]; per view of Camera_5mp:
+  get_Calibration(view) K, D, RT; get_img("Camera_5mp", view, "color", 1) and get_mask(view, 1), both
+  cv2.undistort(x, K, D); w2c = inv(np.array(RT, float32)); K[:2] *= 0.5 in place.
+"""
 from __future__ import annotations
 
 import json
@@ -152,8 +184,7 @@ def test_file_layout_follows_the_dataset_conventions(tiny, written, body_model):
     """Raw HDF5 values against the documented layout: c2w RT, BGR bytes, flat_hand_mean=False, keys."""
     _, main_path, annots_path = written
     with h5py.File(main_path, "r") as main, h5py.File(annots_path, "r") as annots:
-        assert {"actor_id", "performance_id", "age", "gender", "height", "weight"} <= set(main.attrs)
-        assert (main.attrs["actor_id"], main.attrs["performance_id"]) == ("0007", "03")
+        assert (main.attrs["actor_id"], main.attrs["performance_id"]) == (7, 3)  # ints, as the download page
         assert sorted(main["Camera_5mp"].keys()) == ["0", "1", "2"]
         assert sorted(main["Camera_12mp"].keys()) == ["3", "4"]
         assert main["Camera_12mp"].attrs["num_device"] == 2 and main["Camera_12mp"].attrs["num_frame"] == 3
@@ -197,6 +228,167 @@ def test_params_need_the_body_model(written):
         assert len(dna.cameras) == 5  # cameras and images need no body model
         with pytest.raises(CaptureError, match="flat_hand_mean=False"):
             dna.params
+
+
+# -- the official reader's accesses (module docstring) ------------------------------------------------
+
+OFFICIAL_ACTOR_ATTRS = ("actor_id", "performance_id", "age", "gender", "height", "weight", "ethnicity")
+OFFICIAL_CALIBRATION = ("D", "K", "RT", "Color_Calibration")
+OFFICIAL_SMPLX = ("betas", "expression", "fullpose", "transl")
+
+
+def _official_open(handle: h5py.File) -> tuple[dict | None, dict]:
+    """SMCReader's constructor: actor attributes if the root has any; info attributes of each camera group."""
+    actor = {key: handle.attrs[key] for key in OFFICIAL_ACTOR_ATTRS} if len(handle.attrs.keys()) > 0 else None
+    groups = {group: {key: handle[group].attrs[key] for key in ("num_device", "num_frame", "resolution")}
+              for group in ("Camera_5mp", "Camera_12mp", "Kinect") if group in handle}
+    return actor, groups
+
+
+def _official_calibration(handle: h5py.File, camera_id) -> dict:
+    return {key: handle["Camera_Parameter"][f"{int(camera_id):02d}"][key][()] for key in OFFICIAL_CALIBRATION}
+
+
+def _official_calibration_all(handle: h5py.File) -> dict:
+    return {ci: {key: handle["Camera_Parameter"][ci][key][()] for key in OFFICIAL_CALIBRATION}
+            for ci in handle["Camera_Parameter"].keys()}
+
+
+def _official_img(handle: h5py.File, group: str, camera_id, frame=None) -> np.ndarray:
+    assert group in ("Camera_12mp", "Camera_5mp", "Kinect")
+    camera_id = str(camera_id)
+    assert camera_id in handle[group].keys()
+    assert "color" in handle[group][camera_id].keys()
+    if frame is None:
+        frames = sorted(int(key) for key in handle[group][camera_id]["color"].keys())
+        return np.stack([_official_img(handle, group, camera_id, f) for f in frames], axis=0)
+    assert str(frame) in handle[group][camera_id]["color"].keys()
+    return cv2.imdecode(handle[group][camera_id]["color"][str(frame)][()], cv2.IMREAD_COLOR)
+
+
+def _official_mask(handle: h5py.File, camera_id, frame) -> np.ndarray:
+    masks = handle["Mask"][str(camera_id)]["mask"]
+    assert str(frame) in masks.keys()
+    return np.max(cv2.imdecode(masks[str(frame)][()], cv2.IMREAD_COLOR), 2)
+
+
+def _official_smplx(handle: h5py.File, frame=None) -> dict:
+    t_frame = handle["SMPLx"]["betas"][()].shape[0]
+    if frame is None:
+        frames = range(t_frame)
+    elif isinstance(frame, list):
+        frames = [int(f) for f in frame]
+    else:
+        frames = int(frame)
+        assert frames < t_frame, f"Invalid frame_index {frames}"
+    result = {key: handle["SMPLx"][key][()][frames, ...] for key in OFFICIAL_SMPLX}
+    result["scale"] = handle["SMPLx"]["scale"][()]
+    return result
+
+
+def test_official_get_smplx_reads_every_frame(tiny, written, body_model):
+    """get_SMPLx counts frames by the rows of `betas`: all 3 frames by index, as a list and as None."""
+    n = len(tiny.frames)
+    file_pose = tiny.params.full_pose.copy()
+    for part in (slice(25, 40), slice(40, 55)):
+        file_pose[:, part] -= body_model.hands_mean.numpy()[part]
+    with h5py.File(written[2], "r") as annots:
+        for frame in range(n):
+            got = _official_smplx(annots, frame)
+            assert {k: got[k].shape for k in OFFICIAL_SMPLX} == {"betas": (10,), "expression": (10,),
+                                                                  "fullpose": (NUM_JOINTS, 3), "transl": (3,)}
+            np.testing.assert_allclose(got["betas"], tiny.params.betas, atol=1e-12)
+            np.testing.assert_allclose(got["expression"], tiny.params.expression[frame], atol=1e-12)
+            np.testing.assert_allclose(got["fullpose"], file_pose[frame], atol=1e-12)
+            np.testing.assert_allclose(got["transl"], tiny.params.transl[frame], atol=1e-12)
+            assert np.asarray(got["scale"]).size == 1 and float(np.asarray(got["scale"]).ravel()[0]) == 1.0
+        with pytest.raises(AssertionError, match=f"Invalid frame_index {n}"):
+            _official_smplx(annots, n)
+        every = _official_smplx(annots)
+        assert [every[k].shape for k in OFFICIAL_SMPLX] == [(n, 10), (n, 10), (n, NUM_JOINTS, 3), (n, 3)]
+        np.testing.assert_allclose(_official_smplx(annots, [0, 2])["fullpose"], file_pose[[0, 2]], atol=1e-12)
+
+
+def test_official_get_calibration_reads_every_camera(tiny, written):
+    """get_Calibration / get_Calibration_all read D, K, RT and Color_Calibration of every camera."""
+    with h5py.File(written[2], "r") as annots:
+        every = _official_calibration_all(annots)
+        assert sorted(every) == ["00", "01", "02", "03", "04"]
+        for index, source in enumerate(tiny.cameras.values()):
+            calib = _official_calibration(annots, index)
+            assert {k: (v.dtype, v.shape) for k, v in calib.items()} == {
+                "D": (np.float64, (5,)), "K": (np.float64, (3, 3)), "RT": (np.float64, (4, 4)),
+                "Color_Calibration": (np.float64, (3, 3))}
+            for key in OFFICIAL_CALIBRATION:
+                np.testing.assert_array_equal(calib[key], every[f"{index:02d}"][key])
+            np.testing.assert_array_equal(calib["Color_Calibration"], np.eye(3))
+            np.testing.assert_array_equal(calib["D"], source.dist)
+            np.testing.assert_array_equal(calib["K"], source.K)
+
+
+def test_official_actor_info_and_group_info(tiny, written, body_model):
+    """The constructor's attributes: all seven actor attributes on the main file with the download page's
+    types, none on the annotation file (so it skips them), and the camera groups' info attributes."""
+    with h5py.File(written[1], "r") as main, h5py.File(written[2], "r") as annots:
+        actor, groups = _official_open(main)
+        assert _official_open(annots) == (None, {})
+        assert {group: (int(info["num_device"]), int(info["num_frame"]), info["resolution"].tolist())
+                for group, info in groups.items()} == {"Camera_5mp": (3, 3, [30, 40]), "Camera_12mp": (2, 3, [30, 40])}
+        # Kinect, keypoints and Kinect calibration are absent: those getters of the reader return None.
+        assert not {"Kinect", "Keypoints_2D", "Keypoints_3D", "Calibration"} & (set(main) | set(annots))
+    assert [type(actor[k]) for k in OFFICIAL_ACTOR_ATTRS] == [np.int64] * 3 + [str] + [np.int64] * 2 + [str]
+    # Defaults: ids from the sequence name; a BodyModel object names no gender; the height of the shaped rest
+    # body (y extent of v_template + shapedirs betas, from the raw arrays), the weight of a BMI of 22.
+    arrays = _tiny_body_arrays(np.random.default_rng(1))
+    shaped = arrays["v_template"] + arrays["shapedirs"][..., :10] @ tiny.params.betas
+    height = int(round(100 * np.ptp(shaped[:, 1])))
+    assert height > 10
+    assert actor == {"actor_id": 7, "performance_id": 3, "age": 30, "gender": "neutral", "height": height,
+                     "weight": int(round(22 * (height / 100) ** 2)), "ethnicity": "unknown"}
+
+
+def test_official_3dgs_loader_reads_frame_1_of_every_view(tiny, written):
+    """readCamerasDNARendering's use of frame 1 (the frame that failed): SMPL-X with a batch axis and its
+    fullpose slices, then per Camera_5mp view the undistorted image and mask and inv(RT) as float32."""
+    with h5py.File(written[1], "r") as main, h5py.File(written[2], "r") as annots:
+        actor, _ = _official_open(main)
+        assert actor["gender"] in ("male", "female", "neutral")  # what SMPLX(gender=...) accepts
+        smplx = {k: v[None] for k, v in _official_smplx(annots, 1).items() if k != "scale"}
+        fullpose = smplx["fullpose"]
+        slices = [fullpose[:, 0], fullpose[:, 1:22], fullpose[:, 22], fullpose[:, 23], fullpose[:, 24],
+                  fullpose[:, 25:40], fullpose[:, 40:55]]
+        assert [x.shape for x in slices] == [(1, 3), (1, 21, 3), (1, 3), (1, 3), (1, 3), (1, 15, 3), (1, 15, 3)]
+        assert (smplx["betas"].shape, smplx["expression"].shape, smplx["transl"].shape) == ((1, 10), (1, 10), (1, 3))
+        for view in sorted(int(k) for k in main["Camera_5mp"].keys()):
+            source = list(tiny.cameras.values())[view]
+            calib = _official_calibration(annots, view)
+            image = cv2.undistort(_official_img(main, "Camera_5mp", view, 1), calib["K"], calib["D"])
+            mask = cv2.undistort(_official_mask(annots, view, 1), calib["K"], calib["D"])
+            assert image.shape == (30, 40, 3) and mask.shape == (30, 40)
+            w2c = np.linalg.inv(np.array(calib["RT"], dtype=np.float32))
+            np.testing.assert_allclose(w2c[:3, :3], source.R, atol=1e-5)
+            np.testing.assert_allclose(w2c[:3, 3], source.T, atol=1e-5)
+            K = calib["K"]
+            K[:2] = K[:2] * 0.5
+            np.testing.assert_allclose(K[:2], source.K[:2] * 0.5, atol=1e-12)
+
+
+def test_official_get_img_and_get_mask_give_the_source_pixels(tiny, written):
+    """get_img (BGR, one frame or the stack of all present ones) and get_mask (max over channels) on every
+    camera of both groups, against the capture the file was written from."""
+    with h5py.File(written[1], "r") as main, h5py.File(written[2], "r") as annots:
+        for index, name in enumerate(tiny.cameras):
+            group = "Camera_5mp" if index < 3 else "Camera_12mp"
+            present = [i for i, frame in enumerate(tiny.frames) if tiny.has_frame(name, frame)]
+            for i in present:
+                np.testing.assert_array_equal(_official_img(main, group, index, i),
+                                              tiny.read_image(name, tiny.frames[i])[..., ::-1])
+                np.testing.assert_array_equal(_official_mask(annots, index, i), tiny.read_mask(name, tiny.frames[i]))
+            stack = _official_img(main, group, index)
+            assert stack.shape == (len(present), 30, 40, 3)
+            np.testing.assert_array_equal(stack[-1], tiny.read_image(name, tiny.frames[present[-1]])[..., ::-1])
+        with pytest.raises(AssertionError):  # the one missing frame is missing for the reader too
+            _official_img(main, "Camera_5mp", 2, 2)
 
 
 def test_locates_official_and_flat_layouts(written, tmp_path):
@@ -252,14 +444,24 @@ def test_malformed_files_name_file_and_hdf5_path(written, tmp_path, which, actio
         DnaCapture(main.parent, SEQ)
 
 
-def test_betas_with_one_row_per_frame(written, tmp_path, tiny, body_model):
+def _replace(handle: h5py.File, path: str, data) -> None:
+    if path in handle:
+        del handle[path]
+    handle.create_dataset(path, data=data)
+
+
+def test_writer_stores_one_betas_row_per_frame_and_the_reader_takes_any_row_count(written, tmp_path, tiny, body_model):
+    """The export has (N, 10) betas, as real files; the reader also takes (1, 10) and (10,), not (2, 10)
+    for 3 frames."""
+    with h5py.File(written[2], "r") as annots:
+        np.testing.assert_array_equal(annots["SMPLx/betas"][()], np.repeat(tiny.params.betas[None], 3, axis=0))
     main, annots = _copy(written, tmp_path)
-    per_frame = np.repeat(tiny.params.betas[None], 3, axis=0)
-    _edit(annots, lambda h: (h.__delitem__("SMPLx/betas"), h.create_dataset("SMPLx/betas", data=per_frame)))
-    with DnaCapture(main.parent, SEQ, body_model=body_model) as dna:
-        np.testing.assert_allclose(dna.params.betas, tiny.params.betas, atol=1e-12)
-        assert dna.params.num_frames == 3
-    _edit(annots, lambda h: (h.__delitem__("SMPLx/betas"), h.create_dataset("SMPLx/betas", data=per_frame[:2])))
+    for stored in (tiny.params.betas[None], tiny.params.betas):
+        _edit(annots, lambda h: _replace(h, "SMPLx/betas", stored))
+        with DnaCapture(main.parent, SEQ, body_model=body_model) as dna:
+            np.testing.assert_allclose(dna.params.betas, tiny.params.betas, atol=1e-12)
+            assert dna.params.num_frames == 3
+    _edit(annots, lambda h: _replace(h, "SMPLx/betas", np.repeat(tiny.params.betas[None], 2, axis=0)))
     with pytest.raises(CaptureError, match=r"_annots\.smc:/SMPLx: 'betas' has shape \(2, 10\)"):
         DnaCapture(main.parent, SEQ)
 
@@ -322,7 +524,7 @@ def test_color_calibration_acts_on_bgr_pixels(written, tmp_path, tiny, stored):
     main, annots = _copy(written, tmp_path)
     for cam in range(5):
         data = stored if cam == 3 else np.ones_like(stored) if stored.ndim == 1 else np.eye(3)
-        _edit(annots, lambda h: h.create_dataset(f"Camera_Parameter/{cam:02d}/Color_Calibration", data=data))
+        _edit(annots, lambda h: _replace(h, f"Camera_Parameter/{cam:02d}/Color_Calibration", data))
     matrix = stored if stored.ndim == 2 else np.diag(stored)
     bgr = tiny.read_image("cam03", 11)[..., ::-1].astype(np.float64)
     expected = np.clip(bgr @ matrix.T, 0, 255)[..., ::-1]  # reference in BGR space
@@ -339,7 +541,7 @@ def test_color_calibration_acts_on_bgr_pixels(written, tmp_path, tiny, stored):
 def test_color_calibration_of_unknown_shape(written, tmp_path):
     main, annots = _copy(written, tmp_path)
     for cam in range(5):
-        _edit(annots, lambda h: h.create_dataset(f"Camera_Parameter/{cam:02d}/Color_Calibration", data=np.ones((2, 4))))
+        _edit(annots, lambda h: _replace(h, f"Camera_Parameter/{cam:02d}/Color_Calibration", np.ones((2, 4))))
     with pytest.warns(UserWarning, match=r"Color_Calibration: expected a finite 3x3 matrix or 3 per-channel gains"):
         dna = DnaCapture(main.parent, SEQ)
     assert dna.cameras["0"].color_correction is None
@@ -358,9 +560,14 @@ def test_writer_colour_calibration_round_trip(tiny, body_model, tmp_path):
         tiny.cameras["cam01"].color_correction = None
     with h5py.File(tmp_path / "annotations" / f"{SEQ}_annots.smc", "r") as annots:
         np.testing.assert_allclose(annots["Camera_Parameter/01/Color_Calibration"][()], matrix[::-1, ::-1])
-    with DnaCapture(tmp_path, SEQ) as dna:
-        np.testing.assert_allclose(dna.cameras["1"].color_correction, matrix)
-        assert dna.cameras["0"].color_correction is None
+        stored = annots["Camera_Parameter/00/Color_Calibration"][()]  # no correction: identity, not absent
+        assert stored.dtype == np.float64 and stored.shape == (3, 3)
+        np.testing.assert_array_equal(stored, np.eye(3))
+    for requested in (False, True):
+        with DnaCapture(tmp_path, SEQ, color_correction=requested) as dna:
+            np.testing.assert_allclose(dna.cameras["1"].color_correction, matrix)
+            assert dna.cameras["0"].color_correction is None  # identity reads as "no correction"
+            np.testing.assert_array_equal(dna.read_image("0", 1), tiny.read_image("cam00", 11))
     with h5py.File(tmp_path / f"{SEQ}.smc", "r") as main:  # default: up to 48 cams in Camera_5mp
         assert sorted(main) == ["Camera_5mp"] and len(main["Camera_5mp"]) == 5
 
@@ -385,6 +592,19 @@ def test_gender_mismatch_with_the_model_file_is_warned(tiny, body_model, tmp_pat
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         DnaCapture(tmp_path, SEQ, body_model=tmp_path / "SMPLX_FEMALE.npz").close()
+
+
+def test_default_gender_is_the_one_the_model_file_names(tiny, tmp_path):
+    """The official loader builds SMPLX(gender=<attribute>): an export fitted with SMPLX_FEMALE says "female"."""
+    path = tmp_path / "models" / "SMPLX_FEMALE.npz"
+    path.parent.mkdir()
+    np.savez(path, **_tiny_body_arrays(np.random.default_rng(1)))
+    write_smc(tiny, tmp_path / "out", SEQ, path)
+    with h5py.File(tmp_path / "out" / f"{SEQ}.smc", "r") as main:
+        assert main.attrs["gender"] == "female"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # and our reader sees no mismatch
+        DnaCapture(tmp_path / "out", SEQ, body_model=path).close()
 
 
 def _thuman4_as_dna(tmp_path) -> tuple[Path, Path, "Thuman4Capture"]:
@@ -415,9 +635,18 @@ def test_writer_cli_exports_a_thuman4_subject(tmp_path, capsys):
     from pig.data.thuman4 import Thuman4Capture
 
     raw = write_thuman4(tmp_path / "raw", cameras=3, frames=2, width=48, height=40, ext="png")
-    main(["--format", "thuman4", "--input", str(raw), "--output", str(tmp_path / "out"), "--sequence", "0100_02"])
+    main(["--format", "thuman4", "--input", str(raw), "--output", str(tmp_path / "out"), "--sequence", "0100_02",
+          "--actor", "ethnicity=white", "--actor", "age=41", "--actor", "gender=male"])
     assert capsys.readouterr().out.split() == [str(tmp_path / "out" / "0100_02.smc"),
                                                str(tmp_path / "out" / "annotations" / "0100_02_annots.smc")]
+    with h5py.File(tmp_path / "out" / "0100_02.smc", "r") as handle:
+        assert _official_open(handle)[0] | {"height": 0, "weight": 0} == {
+            "actor_id": 100, "performance_id": 2, "age": 41, "gender": "male", "height": 0, "weight": 0,
+            "ethnicity": "white"}
+    with pytest.raises(SystemExit):
+        main(["--format", "thuman4", "--input", str(raw), "--output", str(tmp_path / "x"), "--actor", "age"])
+    assert "--actor 'age': expected KEY=VALUE" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
     source = Thuman4Capture(raw)
     with DnaCapture(tmp_path / "out", body_model=raw / "body_model.npz") as dna:
         np.testing.assert_array_equal(dna.read_image("2", 1), source.read_image("cam02", 1))

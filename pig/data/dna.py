@@ -8,10 +8,13 @@ Conventions converted here: camera-to-world `RT` -> world-to-camera (R, T); BGR 
 Layout choices that no real file has confirmed (UNVERIFIED), and how they are handled:
 - group attribute `resolution`: two integers in either order (a third entry 3 is allowed); the order
   is taken from the first decoded image of the group, which must match the pair.
-- `Color_Calibration`: a 3x3 matrix or 3 per-channel gains acting on BGR pixel vectors
-  (`bgr' = M bgr`, as the sister RenBody format documents); exposed as the equivalent RGB matrix in
-  `RawCamera.color_correction` and applied by `read_image` only with `color_correction=True`.
+- `Color_Calibration`: a 3x3 matrix (the download page: "double (3,3)", BGR) or 3 per-channel gains
+  acting on BGR pixel vectors (`bgr' = M bgr`, as the sister RenBody format documents); exposed as the
+  equivalent RGB matrix in `RawCamera.color_correction` and applied by `read_image` only with
+  `color_correction=True`. The identity (our writer's value for "no correction") reads as None.
   Other shapes are ignored with a warning unless correction was requested.
+- `SMPLx/betas`: (N, 10) in the released files (the official reader counts frames by its rows),
+  (1, 10) or (10,) accepted too; all frames use row 0, with a warning when rows differ.
 - `SMPLx/scale` is ignored, as in the dataset's official loader; a value other than 1 is warned about.
 """
 from __future__ import annotations
@@ -132,16 +135,20 @@ def bgr_matrix_to_rgb(matrix: np.ndarray) -> np.ndarray:
 
 
 def _color_correction(value: np.ndarray, where: str, required: bool) -> np.ndarray | None:
+    """The RGB correction matrix stored at `where`; None for the identity (no correction)."""
     value = np.asarray(value, dtype=np.float64)
-    if value.shape == (3, 3) and np.all(np.isfinite(value)):
-        return bgr_matrix_to_rgb(value)
-    if value.size == 3 and value.ndim <= 2 and np.all(np.isfinite(value)):
-        return bgr_matrix_to_rgb(np.diag(value.reshape(3)))
-    message = f"{where}: expected a finite 3x3 matrix or 3 per-channel gains, found shape {value.shape}"
-    if required:
-        raise CaptureError(message)
-    warnings.warn(message + "; colour correction ignored", stacklevel=3)
-    return None
+    finite = np.all(np.isfinite(value))
+    if value.shape == (3, 3) and finite:
+        matrix = value
+    elif value.size == 3 and value.ndim <= 2 and finite:
+        matrix = np.diag(value.reshape(3))
+    else:
+        message = f"{where}: expected a finite 3x3 matrix or 3 per-channel gains, found shape {value.shape}"
+        if required:
+            raise CaptureError(message)
+        warnings.warn(message + "; colour correction ignored", stacklevel=3)
+        return None
+    return None if np.array_equal(matrix, np.eye(3)) else bgr_matrix_to_rgb(matrix)
 
 
 def _hands_mean(body_model: str | Path | BodyModel) -> np.ndarray:
@@ -350,12 +357,18 @@ class DnaCapture:
                          height=height, dist=dist, color_correction=correction)
 
 
+def model_gender(body_model) -> str | None:
+    """The gender a model file's name states ("female" for SMPLX_FEMALE.npz), else None."""
+    if not isinstance(body_model, (str, Path)):
+        return None
+    named = [t for t in re.split(r"[^a-z]+", Path(body_model).stem.lower()) if t in ("male", "female", "neutral")]
+    return named[0] if named else None
+
+
 def _check_gender(gender, body_model, where: Path) -> None:
     """Warn when the model file's name names another gender than the actor's (fits use gendered models)."""
-    if not isinstance(gender, str) or not isinstance(body_model, (str, Path)):
-        return
-    named = [t for t in re.split(r"[^a-z]+", Path(body_model).stem.lower()) if t in ("male", "female", "neutral")]
-    if named and gender.lower() in ("male", "female") and named[0] != gender.lower():
+    named = model_gender(body_model)
+    if isinstance(gender, str) and named and gender.lower() in ("male", "female") and named != gender.lower():
         warnings.warn(f"{where}: the actor's gender is {gender!r} but the body model is {body_model}; the official "
                       f"loader fits with SMPLX_{gender.upper()}", stacklevel=3)
 

@@ -3,6 +3,10 @@ main file of encoded images and an `_annots.smc` with calibration, masks and SMP
 
 The inverse of `pig.data.dna.DnaCapture`: world-to-camera -> camera-to-world `RT`, RGB -> BGR, and
 flat-hand-mean poses -> the dataset's `flat_hand_mean=False` convention (subtracts `hands_mean`).
+
+What the dataset's own reader (SMCReader of the DNA-Rendering repository) needs, and so is always written:
+`Color_Calibration` for every camera (identity without a correction), `betas` with one row per frame
+(it takes the frame count from them), and all actor attributes of the download page, `ethnicity` included.
 """
 from __future__ import annotations
 
@@ -12,13 +16,19 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
+import torch
 from tqdm import tqdm
 
-from pig.body.model import LEFT_HAND, RIGHT_HAND, BodyModel
-from pig.data.dna import ANNOTS_SUFFIX, CALIBRATION, CAMERA_GROUPS, MASKS, SMPLX, bgr_matrix_to_rgb
+from pig.body.model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, BodyModel
+from pig.data.dna import ANNOTS_SUFFIX, CALIBRATION, CAMERA_GROUPS, MASKS, SMPLX, bgr_matrix_to_rgb, model_gender
 from pig.data.raw import CaptureError, RawCapture
 
 DNA_NUM_5MP = 48  # cams 0..47 are Camera_5mp in the released data, the rest Camera_12mp
+# Actor facts an export cannot know; override with `actor=` / `--actor KEY=VALUE`. The download page
+# lists ethnicity as one of yellow, white, black, brown: an export does not guess one.
+PLACEHOLDER_AGE = 30
+UNKNOWN_ETHNICITY = "unknown"
+NORMAL_BMI = 22.0  # kg/m^2, middle of the normal range: the weight written for the body's height
 
 
 def _encode(image: np.ndarray, ext: str, jpeg_quality: int) -> np.ndarray:
@@ -29,13 +39,27 @@ def _encode(image: np.ndarray, ext: str, jpeg_quality: int) -> np.ndarray:
     return data.reshape(-1)
 
 
-def _actor(capture: RawCapture, sequence: str, actor: dict | None) -> dict:
+def _standing_height_cm(model: BodyModel, betas: np.ndarray) -> int:
+    """Vertical (y, SMPL-X's up axis) extent of the shaped body in its rest pose, in centimetres."""
+    body = model(torch.zeros(1, NUM_JOINTS, 3), torch.from_numpy(np.asarray(betas, dtype=np.float64)))
+    heights = body.shaped_vertices[0, :, 1].detach().cpu().double().numpy()
+    return int(round(100 * (heights.max() - heights.min())))
+
+
+def _actor_attributes(capture: RawCapture, sequence: str, actor: dict | None, model: BodyModel, model_path) -> dict:
+    """Root attributes of the main file: the download page's ints and strings (ids from `<actor>_<performance>`)."""
     actor_id, _, performance = sequence.partition("_")
-    values = {"actor_id": actor_id, "performance_id": performance or "00", "age": 0, "gender": "neutral",
-              "height": 0, "weight": 0}
+    height = _standing_height_cm(model, capture.params.betas)
+    values = {"actor_id": _int_if_digits(actor_id), "performance_id": _int_if_digits(performance or "00"),
+              "age": PLACEHOLDER_AGE, "gender": model_gender(model_path) or "neutral", "height": height,
+              "weight": int(round(NORMAL_BMI * (height / 100) ** 2)), "ethnicity": UNKNOWN_ETHNICITY}
     values.update(getattr(capture, "actor", None) or {})
     values.update(actor or {})
     return values
+
+
+def _int_if_digits(text: str) -> int | str:
+    return int(text) if text.isdigit() else text
 
 
 def write_smc(capture: RawCapture, out_dir: str | Path, sequence: str, body_model: str | Path | BodyModel, *,
@@ -47,6 +71,8 @@ def write_smc(capture: RawCapture, out_dir: str | Path, sequence: str, body_mode
     Camera_5mp, the rest to Camera_12mp. Frames become 0..N-1 in `capture.frames` order; frames the
     capture lacks for a camera are left out. `body_model`: the SMPL-X model whose `hands_mean` the file's
     `flat_hand_mean=False` poses refer to. `.png` (default) is lossless; `.jpg` uses `jpeg_quality`.
+    `actor`: root attributes that replace the defaults (gender from the model file's name, else neutral;
+    height of the shaped body in cm; the weight of a BMI of 22; placeholder age; ethnicity "unknown").
     """
     out_dir = Path(out_dir)
     names = list(capture.cameras)
@@ -56,6 +82,7 @@ def write_smc(capture: RawCapture, out_dir: str | Path, sequence: str, body_mode
     groups = {CAMERA_GROUPS[0]: list(enumerate(names))[:num_5mp], CAMERA_GROUPS[1]: list(enumerate(names))[num_5mp:]}
     model = body_model if isinstance(body_model, BodyModel) else BodyModel.from_file(body_model)
     hands_mean = model.hands_mean.detach().cpu().double().numpy()
+    attributes = _actor_attributes(capture, sequence, actor, model, body_model)
 
     main_path = out_dir / f"{sequence}.smc"
     annots_path = out_dir / "annotations" / f"{sequence}{ANNOTS_SUFFIX}.smc"
@@ -66,7 +93,7 @@ def write_smc(capture: RawCapture, out_dir: str | Path, sequence: str, body_mode
     try:
         with h5py.File(tmp_main, "w") as main, h5py.File(tmp_annots, "w") as annots, \
                 tqdm(total=total, desc=f"write {sequence}.smc", unit="img") as progress:
-            for key, value in _actor(capture, sequence, actor).items():
+            for key, value in attributes.items():
                 main.attrs[key] = value
             calibration = annots.create_group(CALIBRATION)
             masks = annots.create_group(MASKS)
@@ -108,8 +135,8 @@ def _write_camera(group: h5py.Group, camera) -> None:
     group["K"] = np.asarray(camera.K, dtype=np.float64)
     group["D"] = np.asarray(camera.dist, dtype=np.float64).reshape(-1)
     group["RT"] = np.linalg.inv(world_to_cam)
-    if camera.color_correction is not None:
-        group["Color_Calibration"] = bgr_matrix_to_rgb(camera.color_correction)
+    correction = np.eye(3) if camera.color_correction is None else bgr_matrix_to_rgb(camera.color_correction)
+    group["Color_Calibration"] = np.asarray(correction, dtype=np.float64)
 
 
 def _write_params(group: h5py.Group, capture: RawCapture, hands_mean: np.ndarray) -> None:
@@ -118,7 +145,7 @@ def _write_params(group: h5py.Group, capture: RawCapture, hands_mean: np.ndarray
     for part in (LEFT_HAND, RIGHT_HAND):
         pose[:, part] -= hands_mean[part]
     group["fullpose"] = pose
-    group["betas"] = np.asarray(params.betas, dtype=np.float64)[None]
+    group["betas"] = np.repeat(np.asarray(params.betas, dtype=np.float64)[None], len(pose), axis=0)
     group["expression"] = np.asarray(params.expression, dtype=np.float64)
     group["transl"] = np.asarray(params.transl, dtype=np.float64)
     group["scale"] = np.array([1.0])
@@ -134,8 +161,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--body-model", type=Path, default=None,
                         help="SMPL-X npz the capture's poses use (default: <input>/body_model.npz)")
     parser.add_argument("--num-5mp", type=int, default=None, help="cameras written to Camera_5mp (default min(C, 48))")
+    parser.add_argument("--actor", action="append", default=[], metavar="KEY=VALUE",
+                        help="root attribute of the main file, e.g. gender=female or age=41 (repeatable)")
     parser.add_argument("--jpeg", type=int, default=None, metavar="QUALITY", help="encode JPEG instead of PNG")
     args = parser.parse_args(argv)
+    actor = {}
+    for item in args.actor:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            parser.error(f"--actor {item!r}: expected KEY=VALUE, e.g. ethnicity=white")
+        actor[key] = _int_if_digits(value)
     from pig.data.formats import capture_format, open_capture
 
     body_model = args.body_model or args.input / "body_model.npz"
@@ -148,7 +183,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.exit(1, f"smc_writer: error: {err}\n")
     ext, quality = (".png", 95) if args.jpeg is None else (".jpg", args.jpeg)
     for path in write_smc(capture, args.output, args.sequence, body_model, num_5mp=args.num_5mp,
-                          image_ext=ext, jpeg_quality=quality):
+                          image_ext=ext, jpeg_quality=quality, actor=actor):
         print(path)
 
 
