@@ -17,6 +17,7 @@ from tqdm import tqdm
 from pig.body.model import LEFT_HAND, RIGHT_HAND, BodyModel
 from pig.data.dna import ANNOTS_SUFFIX, CALIBRATION, CAMERA_GROUPS, MASKS, SMPLX, bgr_matrix_to_rgb
 from pig.data.raw import CaptureError, RawCapture
+from pig.stages._cli import add_common_arguments, run_cli
 
 DNA_NUM_5MP = 48  # cams 0..47 are Camera_5mp in the released data, the rest Camera_12mp
 
@@ -135,6 +136,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="SMPL-X npz the capture's poses use (default: <input>/body_model.npz)")
     parser.add_argument("--num-5mp", type=int, default=None, help="cameras written to Camera_5mp (default min(C, 48))")
     parser.add_argument("--jpeg", type=int, default=None, metavar="QUALITY", help="encode JPEG instead of PNG")
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
     from pig.data.formats import capture_format, open_capture
 
@@ -153,4 +155,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_cli(main))
