@@ -2,16 +2,22 @@
 
 Each module owns the dataclass of its section; `load_section` fills it from a profile, rejecting
 unknown keys and wrong types with the file and key named, so a typo never silently uses a default.
+YAML numbers follow YAML 1.2 (`1e8` and `1.0e8` are floats) rather than PyYAML's YAML 1.1, and digit strings
+with a leading zero (`0165_01`, `0206`) stay strings, as sequence and camera ids do.
 """
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import yaml
+
+if TYPE_CHECKING:
+    import torch
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 PROFILE_DIR = REPO_ROOT / "config" / "profiles"
@@ -21,6 +27,27 @@ T = TypeVar("T")
 
 class ConfigError(ValueError):
     """A configuration file or value is not what the pipeline expects."""
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader whose implicit ints and floats are YAML 1.2's, except that a leading zero keeps digits a string.
+
+    PyYAML resolves YAML 1.1, where `1e8` and `1.0e8` are strings (the exponent needs a dot and a sign), `0165`
+    is octal 117, `0165_01` is 7489, `1_000` is 1000 and `1:30` is 90; here the last four are strings.
+    """
+
+
+_INT, _FLOAT = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+_Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in (_INT, _FLOAT)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_Loader.add_implicit_resolver(_INT, re.compile(r"^(?:[-+]?(?:0|[1-9][0-9]*)|0x[0-9a-fA-F]+|0o[0-7]+)$"),
+                              list("-+0123456789"))
+_Loader.add_implicit_resolver(_FLOAT, re.compile(r"""^(?:[-+]?(?:[0-9]+\.[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?
+    |[-+]?[0-9]+[eE][-+]?[0-9]+
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""", re.X), list("-+0123456789."))
 
 
 def profile_path(name_or_path: str | Path) -> Path:
@@ -37,10 +64,15 @@ def profile_path(name_or_path: str | Path) -> Path:
     return path
 
 
+def parse_yaml(text: str) -> Any:
+    """Parse YAML text safely (no tags that construct objects) with YAML 1.2 numbers."""
+    return yaml.load(text, Loader=_Loader)
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = parse_yaml(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except yaml.YAMLError as err:
@@ -58,6 +90,30 @@ def load_profile(name_or_path: str | Path) -> dict[str, Any]:
     data = load_yaml(path)
     data["_path"] = str(path)
     return data
+
+
+def resolve_device(name: str, source: str = "device") -> torch.device:
+    """A torch device from a `--device` or profile value (`source` names it): "auto" is CUDA when available.
+
+    A CUDA device that this machine cannot provide is refused here, before any work, in one line instead of
+    torch's assertion from deep inside the first transfer.
+    """
+    import torch  # here, not at the top: the workflow's rules import this module and need no torch
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ConfigError(f"{source} {name!r}: expected auto, cpu, cuda or cuda:N") from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            why = (f"this torch {torch.__version__} is built without CUDA" if torch.version.cuda is None
+                   else "no CUDA GPU is visible")
+            raise ConfigError(f"{source} {name!r}: CUDA is not available ({why}); use cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ConfigError(f"{source} {name!r}: only {torch.cuda.device_count()} CUDA device(s) are visible")
+    return device
 
 
 def load_section(profile: dict[str, Any], section: str, cls: type[T], overrides: dict[str, Any] | None = None) -> T:
@@ -114,11 +170,14 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
         return dict(value)
     if hint is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, found {value!r}")
+            raise ConfigError(f"{where}: expected a number, found {_found(value)}")
         return float(value)
     if hint is int:
+        # An integral float is exact as an int: `iterations: 1e5` means 100000.
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, found {value!r}")
+            raise ConfigError(f"{where}: expected an integer, found {_found(value)}")
         return value
     if hint is bool:
         if not isinstance(value, bool):
@@ -129,3 +188,14 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected a string, found {value!r}")
         return value
     return value
+
+
+def _found(value: Any) -> str:
+    """How a wrong value reads in an error: a quoted number gets a hint, as it is the common slip."""
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            return f"the string {value!r}"
+        return f"the string {value!r} (a number in quotes: write it without quotes)"
+    return repr(value)

@@ -22,6 +22,7 @@ from tqdm import tqdm
 from pig.body.model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, BodyModel
 from pig.data.dna import ANNOTS_SUFFIX, CALIBRATION, CAMERA_GROUPS, MASKS, SMPLX, bgr_matrix_to_rgb, model_gender
 from pig.data.raw import CaptureError, RawCapture
+from pig.stages._cli import add_common_arguments, run_cli
 
 DNA_NUM_5MP = 48  # cams 0..47 are Camera_5mp in the released data, the rest Camera_12mp
 # Actor facts an export cannot know; override with `actor=` / `--actor KEY=VALUE`. The download page
@@ -164,6 +165,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--actor", action="append", default=[], metavar="KEY=VALUE",
                         help="root attribute of the main file, e.g. gender=female or age=41 (repeatable)")
     parser.add_argument("--jpeg", type=int, default=None, metavar="QUALITY", help="encode JPEG instead of PNG")
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
     actor = {}
     for item in args.actor:
@@ -188,4 +190,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_cli(main))

@@ -18,12 +18,13 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from pig.config import load_profile, load_section
+from pig.config import load_profile, load_section, resolve_device
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, InceptionFeatures, fid_from_features
 from pig.metrics.lpips import LPIPS
 from pig.metrics.psnr import psnr
 from pig.metrics.ssim import ssim
 from pig.metrics.weights import WeightsMissing
+from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import read_png, write_json, write_text
 
 
@@ -39,12 +40,6 @@ class EvaluateConfig:
     batch_size: int = 8
     device: str = "auto"  # "auto": CUDA when available
     timing_frames: int = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
 
 
 def render_levels(split_dir: Path) -> list[int]:
@@ -155,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output", type=Path, required=True, help="metrics directory ({split}_lod{l}.csv/.json go here)")
     parser.add_argument("--lod", type=int, nargs="*", default=None, help="levels to evaluate (default: all rendered)")
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
     cfg = load_section(load_profile(args.profile), "evaluate", EvaluateConfig)
     evaluate_split(args.capture, args.renders, args.split, args.output, cfg, args.lod)
@@ -162,4 +158,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main))

@@ -27,12 +27,13 @@ from pig.avatar.config import AvatarConfig
 from pig.avatar.losses import band_radius, boundary_band, image_loss
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
-from pig.config import ConfigError, load_profile, load_section
+from pig.config import ConfigError, load_profile, load_section, resolve_device
 from pig.data.capture import Capture
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.metrics.psnr import psnr
 from pig.render.api import RasterizerConfig, render_gaussians
+from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_figure, write_text
 
 LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr"]
@@ -156,7 +157,7 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
     """
     threads = torch.get_num_threads()
     try:
-        return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, torch.device(device), on_iteration,
+        return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, resolve_device(device, "--device"), on_iteration,
                     phase or (lambda name: nullcontext()))
     finally:
         torch.set_num_threads(threads)
@@ -271,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
     parser.add_argument("--variant", default="pig", help="method variant from the profile's `variants` section")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
     path = fit(args.capture, args.output, args.profile, args.variant, args.device)
     print(path)
@@ -278,4 +280,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main))

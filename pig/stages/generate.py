@@ -11,6 +11,7 @@ from pathlib import Path
 
 from pig.config import ConfigError, load_profile, load_section
 from pig.data.synthetic import SyntheticConfig, SyntheticError, generate_capture
+from pig.stages._cli import add_common_arguments, run_cli
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -21,6 +22,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--workers", type=int, default=None, help="override synthetic.workers (render processes)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing non-empty output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common_arguments(parser)
     return parser.parse_args(argv)
 
 
@@ -40,4 +42,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

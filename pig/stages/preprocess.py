@@ -29,6 +29,7 @@ from pig.data.projection_check import ProjectionCheckError, Tolerance, View, che
 from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split
+from pig.stages._cli import add_common_arguments, run_cli
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
 
@@ -219,6 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--body-model", default=None, type=Path,
                         help="SMPL-X model npz (default: the dataset's body_model, else body_model.npz in --input)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
     try:
         profile = load_profile(args.profile)
@@ -244,4 +246,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_cli(main))

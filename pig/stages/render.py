@@ -22,6 +22,7 @@ from pig.config import load_profile, load_section
 from pig.data.exr import write_exr
 from pig.field.precondition import PreconditionedTensor
 from pig.render.api import RasterizerConfig, render_gaussians
+from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_json, write_png
 from pig.stages.evaluate import EvaluateConfig, resolve_device
 
@@ -172,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"])
     parser.add_argument("--output", type=Path, required=True, help="renders/{split} directory to write")
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
     profile = load_profile(args.profile)
     cfg = load_section(profile, "evaluate", EvaluateConfig)
@@ -181,4 +183,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main))

@@ -16,6 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from pig.stages._cli import add_common_arguments, run_cli  # noqa: E402
 from pig.stages._io import write_figure, write_text  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
@@ -156,10 +157,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-logs", type=Path, nargs="*", default=[], help="{variant}/train_log.csv files")
     parser.add_argument("--variants", nargs="+", required=True, help="row order of the tables")
     parser.add_argument("--output", type=Path, required=True, help="tables directory (results/tables)")
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
     make_tables(args.dataset, args.summaries, args.train_logs, args.variants, args.output)
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_cli(main))

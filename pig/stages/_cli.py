@@ -1,0 +1,73 @@
+"""Command-line entry points: an error is one line on stderr, not a traceback, unless one is asked for.
+
+Every `python -m pig...` entry point ends with `raise SystemExit(run_cli(main))` and adds the shared options
+with `add_common_arguments(parser)`. An exception from `main` becomes one line, `<stage>: error: <message>`,
+and exit status 1:
+- bad input or a bad environment prints its message as it is: the project's own errors (ConfigError,
+  CaptureError, ... all ValueErrors), any other ValueError, OSError (a missing, unreadable or unwritable
+  file), and a KeyError whose argument is a sentence (`raise KeyError(f"{path}: no split ...")`);
+- anything else is more likely a bug than bad input (IndexError, TypeError, a KeyError of a bare key such as
+  `KeyError: 'psnr'`): its type, its message and a pointer to `--traceback`.
+`--traceback` or the environment variable PIG_DEBUG=1 lets the exception propagate with its full traceback.
+KeyboardInterrupt and SystemExit (argparse's usage errors, exit status 2) pass through unchanged.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+DEBUG_VARIABLE = "PIG_DEBUG"
+TRACEBACK_HINT = f"(run with --traceback or {DEBUG_VARIABLE}=1 for the full traceback)"
+
+# Set by parsing --traceback; `run_cli` clears it before each run.
+_traceback_requested = False
+
+
+class _TracebackFlag(argparse.Action):
+    """`--traceback`: a store-true flag that also tells `run_cli`, which never sees the parsed arguments."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=False, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        global _traceback_requested
+        _traceback_requested = True
+        setattr(namespace, self.dest, True)
+
+
+def add_common_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the options every entry point shares: `--traceback`."""
+    parser.add_argument("--traceback", action=_TracebackFlag,
+                        help=f"on an error, show the full Python traceback instead of one line (or set {DEBUG_VARIABLE}=1)")
+    return parser
+
+
+def traceback_requested() -> bool:
+    return _traceback_requested or os.environ.get(DEBUG_VARIABLE, "") not in ("", "0")
+
+
+def error_line(err: Exception) -> str:
+    """The one-line description of `err` that `run_cli` prints after `<stage>: error: `."""
+    sentence = isinstance(err, KeyError) and len(err.args) == 1 and isinstance(err.args[0], str) and " " in err.args[0]
+    message = re.sub(r"\s*\n\s*", " ", (err.args[0] if sentence else str(err)).strip())
+    if sentence or isinstance(err, (ValueError, OSError)):
+        return message or type(err).__name__
+    described = f"{type(err).__name__}: {message}" if message else type(err).__name__
+    return f"{described} {TRACEBACK_HINT}"
+
+
+def run_cli(main: Callable[[list[str] | None], int | None], argv: list[str] | None = None) -> int:
+    """Run `main(argv)` and return its exit status; on an exception print one error line and return 1."""
+    global _traceback_requested
+    _traceback_requested = False
+    try:
+        return main(argv) or 0
+    except Exception as err:
+        if traceback_requested():
+            raise
+        print(f"{Path(main.__code__.co_filename).stem}: error: {error_line(err)}", file=sys.stderr)
+        return 1
