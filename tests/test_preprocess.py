@@ -12,7 +12,7 @@ import pytest
 
 from thuman4_fixture import look_at, write_thuman4
 
-from pig.config import load_section, load_yaml
+from pig.config import load_section
 from pig.data.capture import Capture
 from pig.data.projection_check import View, overlap_counts, silhouette
 from pig.data.raw import CaptureError
@@ -20,7 +20,6 @@ from pig.data.splits import SplitConfig, make_split
 from pig.data.thuman4 import Thuman4Capture
 from pig.stages.preprocess import PreprocessConfig, main, preprocess_capture
 
-REPO = Path(__file__).resolve().parent.parent
 NO_HOLDOUT = SplitConfig(novel_view_count=0, novel_pose_fraction=0.0)
 
 
@@ -215,35 +214,6 @@ def test_bad_input_exits_with_a_message_and_writes_nothing(tmp_path, capsys, cas
 
 
 # -- protocol splits ------------------------------------------------------------------------------------------
-
-def _split_config(name: str) -> SplitConfig:
-    data = load_yaml(REPO / "config" / "datasets" / f"{name}.yaml")
-    return load_section(data, "split", SplitConfig)
-
-
-def test_thuman4_protocol():
-    cams = [f"cam{i:02d}" for i in range(24)]
-    split = make_split(cams, list(range(2500)), _split_config("thuman4"), "subject00")
-    assert split["train"]["cameras"] == [c for c in cams[:23] if c != "cam07"]
-    assert split["train"]["frames"] == list(range(2000))
-    assert split["novel_view"] == {"cameras": ["cam23"], "frames": list(range(2000))}
-    assert split["novel_pose"] == {"cameras": cams, "frames": list(range(2000, 2500))}
-    other = make_split(cams, list(range(5060)), _split_config("thuman4"), "subject01")
-    assert other["train"]["cameras"] == cams[:23] and other["novel_pose"]["frames"] == list(range(2000, 2500))
-
-
-def test_synthetic_and_dna_protocols():
-    cams = [f"cam{i:02d}" for i in range(12)]
-    split = make_split(cams, list(range(24)), _split_config("synthetic"), "subject00")
-    assert split["novel_view"]["cameras"] == ["cam03", "cam09"]
-    assert split["train"]["cameras"] == [c for c in cams if c not in ("cam03", "cam09")]
-    assert split["train"]["frames"] == list(range(18)) and split["novel_pose"]["frames"] == list(range(18, 24))
-    assert split["novel_pose"]["cameras"] == cams and split["novel_view"]["frames"] == split["train"]["frames"]
-    dna = make_split([str(i) for i in range(60)], list(range(150)), _split_config("dna"), "0165_01")
-    assert dna["train"]["cameras"] == [str(i) for i in range(48)]
-    assert dna["novel_view"]["cameras"] == [str(i) for i in range(48, 60)]
-    assert dna["train"]["frames"] == list(range(120)) and dna["novel_pose"]["frames"] == list(range(120, 150))
-
 
 @pytest.mark.parametrize("cfg, message", [
     (SplitConfig(novel_pose_cameras=["cam1", "cam7"]), r"'novel_pose_cameras' names camera\(s\) \['cam7'\]"),

@@ -18,7 +18,7 @@ class SplitConfig:
     # Cameras held out for novel view; None: `novel_view_count` cameras evenly spaced over the camera order.
     novel_view_cameras: list[str] | None = None
     novel_view_count: int = 2
-    # Subject -> cameras left out of training only (THuman4 subject00 drops cam07).
+    # Subject -> cameras left out of training only (none in the paper's protocols; see config/datasets/thuman4.yaml).
     drop_train_cameras: dict[str, list[str]] = field(default_factory=dict)
     # Inclusive [first, last] frame ids; None: all frames before the novel-pose tail.
     train_frames: list[int] | None = None
