@@ -1,18 +1,24 @@
 """Metrics against independent references: closed forms, scikit-image, and hand-built twin networks."""
 from __future__ import annotations
 
+import json
 import math
 
+import cv2
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 import torch.nn.functional as F
+import yaml
 from skimage.metrics import structural_similarity
 
+from pig.body.params import SmplxParams
 from pig.metrics.fid import InceptionFeatures, fid_from_features, frechet_distance
 from pig.metrics.lpips import LPIPS, WeightsMissing, backbone_features
 from pig.metrics.psnr import psnr
 from pig.metrics.ssim import ssim
+from pig.stages._io import read_png, write_json, write_png
 
 
 @pytest.fixture
@@ -145,6 +151,70 @@ def test_lpips_loads_torchvision_and_lpips_files(tmp_path, empty_hub):
     assert y.grad.abs().sum() > 0 and all(p.grad is None for p in metric.parameters())
 
 
+def _reference_vgg_lpips(backbone: dict, linear: dict, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """LPIPS-VGG written out block by block from the two state_dicts: VGG16's five conv blocks (2, 2, 3, 3, 3
+    3x3 convolutions, 2x2 max-pool between blocks), compared after each block's last ReLU."""
+    shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
+    scale = torch.tensor([0.458, 0.448, 0.450]).view(1, 3, 1, 1)
+    blocks = [(0, 2), (5, 7), (10, 12, 14), (17, 19, 21), (24, 26, 28)]
+
+    def taps(img):
+        h = ((img * 2 - 1) - shift) / scale
+        out = []
+        for b, convs in enumerate(blocks):
+            if b:
+                h = F.max_pool2d(h, 2)
+            for i in convs:
+                h = F.relu(F.conv2d(h, backbone[f"features.{i}.weight"], backbone[f"features.{i}.bias"], padding=1))
+            out.append(h)
+        return out
+
+    total = 0
+    for k, (a, b) in enumerate(zip(taps(x), taps(y))):
+        a = a / (a.norm(dim=1, keepdim=True) + 1e-10)
+        b = b / (b.norm(dim=1, keepdim=True) + 1e-10)
+        total = total + F.conv2d((a - b) ** 2, linear[f"lin{k}.model.1.weight"]).mean(dim=(1, 2, 3))
+    return total
+
+
+def _write_lpips_weights(net: str, hub, linear_path) -> tuple[dict, dict]:
+    """Random weights in torchvision's (into the hub cache) and the lpips package's format; returns both."""
+    backbone = {f"features.{k}": v for k, v in backbone_features(net).state_dict().items()}
+    channels = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}[net]
+    linear = {f"lin{k}.model.1.weight": torch.rand(1, c, 1, 1) for k, c in enumerate(channels)}
+    hub.mkdir(parents=True, exist_ok=True)
+    torch.save(backbone, hub / {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth"}[net])
+    torch.save(linear, linear_path)
+    return backbone, linear
+
+
+def test_lpips_vgg_loads_torchvision_and_lpips_files(tmp_path, empty_hub):
+    torch.manual_seed(0)
+    backbone, linear = _write_lpips_weights("vgg", empty_hub, tmp_path / "vgg.pth")
+    metric = LPIPS("vgg", linear_weights=tmp_path / "vgg.pth")
+    x, y = torch.rand(2, 3, 32, 40), torch.rand(2, 3, 32, 40)
+    expected = _reference_vgg_lpips(backbone, linear, x, y)
+    torch.testing.assert_close(metric(x, y), expected)
+    assert (expected > 0).all()
+    torch.testing.assert_close(metric(x, x), torch.zeros(2))
+    # The AlexNet files do not stand in for VGG's (nor the other way round).
+    with pytest.raises(WeightsMissing, match="alexnet-owt-7be5be79.pth"):
+        LPIPS("alex", linear_weights=tmp_path / "vgg.pth")
+
+
+@pytest.mark.parametrize("net, smallest", [("alex", 31), ("vgg", 16)])
+def test_lpips_smallest_image(tmp_path, empty_hub, net, smallest):
+    torch.manual_seed(0)
+    _write_lpips_weights(net, empty_hub, tmp_path / "lin.pth")
+    metric = LPIPS(net, linear_weights=tmp_path / "lin.pth")
+    x = torch.rand(1, 3, smallest, 3 * smallest)
+    assert torch.isfinite(metric(x, x.flip(-1))).all()
+    too_small = torch.rand(1, 3, 3 * smallest, smallest - 1)
+    with pytest.raises(ValueError, match=rf"LPIPS \({net}\) needs images of at least {smallest} pixels per side, "
+                                         rf"found {smallest - 1}x{3 * smallest}"):
+        metric(too_small, too_small)
+
+
 def test_lpips_missing_weights_name_the_file(tmp_path, empty_hub):
     with pytest.raises(WeightsMissing, match="alexnet-owt-7be5be79.pth"):
         LPIPS("alex")
@@ -182,3 +252,85 @@ def test_inception_features_load_torchscript(tmp_path, empty_hub):
     torch.testing.assert_close(extractor(small), tiny(resized.clamp(0, 1) * 255, return_features=True))
     with pytest.raises(WeightsMissing, match="inception-2015-12-05.pt"):
         InceptionFeatures(tmp_path / "absent.pt")
+
+
+def _tiny_capture(root, rng, width: int = 40, height: int = 32):
+    """A preprocessed capture by hand: one camera, one frame in every split; returns (capture dir, renders dir)."""
+    capture = root / "capture"
+    (capture / "images" / "cam00").mkdir(parents=True)
+    (capture / "masks" / "cam00").mkdir(parents=True)
+    write_json(capture / "cameras.json", {"cam00": {"K": np.eye(3).tolist(), "R": np.eye(3).tolist(),
+                                                    "T": [0.0, 0.0, 2.0], "width": width, "height": height}})
+    SmplxParams(np.zeros((1, 55, 3)), np.zeros(10), np.zeros((1, 10)), np.zeros((1, 3))).save(capture / "smplx.npz")
+    part = {"cameras": ["cam00"], "frames": [0]}
+    (capture / "split.json").write_text(json.dumps({"train": part, "novel_view": part, "novel_pose": part}))
+    (capture / "report.json").write_text(json.dumps({"background": [0, 0, 0]}))
+    truth = rng.random((height, width, 3))
+    mask = np.zeros((height, width), np.uint8)
+    mask[4:-4, 6:-6] = 255
+    write_png(capture / "images" / "cam00" / "00000000.png", truth)
+    cv2.imwrite(str(capture / "masks" / "cam00" / "00000000.png"), mask)
+    renders = root / "renders" / "novel_view"
+    (renders / "lod0" / "cam00").mkdir(parents=True)
+    write_png(renders / "lod0" / "cam00" / "00000000.png", rng.random((height, width, 3)))
+    write_json(renders / "lod0" / "timing.json", {"splats": 100, "model_mb": 1.0, "seconds_per_frame": 0.1,
+                                                  "fps": 10.0, "device": "cpu"})
+    return capture, renders
+
+
+def test_evaluate_with_vgg_and_the_tables_name_the_backbone(tmp_path, empty_hub, rng):
+    """`evaluate.lpips_net: vgg` in a profile scores with VGG, the summary records it and the table headers say it."""
+    from pig.stages.evaluate import main as evaluate
+    from pig.stages.tables import make_tables
+
+    torch.manual_seed(0)
+    backbone, linear = _write_lpips_weights("vgg", empty_hub, tmp_path / "vgg.pth")
+    capture, renders = _tiny_capture(tmp_path, rng)
+    profile = tmp_path / "profile.yaml"
+    profile.write_text(yaml.safe_dump({"evaluate": {"lpips_net": "vgg", "lpips_linear_weights": str(tmp_path / "vgg.pth"),
+                                                    "device": "cpu"}}))
+    metrics = tmp_path / "results" / "dna" / "0165_08" / "pig" / "metrics"
+    assert evaluate(["--capture", str(capture), "--renders", str(renders), "--split", "novel_view",
+                     "--output", str(metrics), "--profile", str(profile)]) == 0
+
+    summary = json.loads((metrics / "novel_view_lod0.json").read_text())
+    assert summary["lpips_net"] == "vgg" and summary["lpips_note"] == ""
+    render = torch.from_numpy(read_png(renders / "lod0" / "cam00" / "00000000.png")).permute(2, 0, 1)[None]
+    image = read_png(capture / "images" / "cam00" / "00000000.png")
+    mask = cv2.imread(str(capture / "masks" / "cam00" / "00000000.png"), cv2.IMREAD_GRAYSCALE) > 127
+    truth = torch.from_numpy(image * mask[..., None]).permute(2, 0, 1)[None]
+    assert summary["lpips"] == pytest.approx(float(_reference_vgg_lpips(backbone, linear, render, truth)), rel=1e-5)
+
+    tables = tmp_path / "results" / "tables"
+    make_tables("dna", [metrics / "novel_view_lod0.json"], [], ["pig"], tables)
+    main = pd.read_csv(tables / "dna.csv").set_index("variant")
+    assert {"novel_view_lpips_vgg", "novel_pose_lpips_vgg"} <= set(main.columns)
+    assert not any(c.endswith("_lpips") or "alex" in c for c in main.columns)
+    assert main.loc["pig", "novel_view_lpips_vgg"] == pytest.approx(summary["lpips"], rel=1e-5)
+    lod = pd.read_csv(tables / "dna_lod.csv")
+    assert "lpips_vgg" in lod.columns and "lpips" not in lod.columns
+    assert "novel_view_lpips_vgg" in (tables / "dna.md").read_text().splitlines()[2]
+    assert "| lpips_vgg |" in (tables / "dna_lod.md").read_text()
+
+
+def _scored(root, subject: str, net: str | None):
+    path = root / "dna" / subject / "pig" / "metrics" / "novel_view_lod0.json"
+    path.parent.mkdir(parents=True)
+    summary = {"split": "novel_view", "lod": 0, "psnr": 30.0, "ssim": 0.9, "lpips": 0.05, "fid": math.nan,
+               "psnr_blank": 10.0, "ssim_blank": 0.5, "splats": 100, "model_mb": 1.0, "fps": 10.0, "device": "cpu"}
+    path.write_text(json.dumps(summary if net is None else {**summary, "lpips_net": net}))
+    return path
+
+
+def test_tables_refuse_mixed_or_unnamed_lpips_backbones(tmp_path):
+    from pig.stages.tables import make_tables
+
+    out = tmp_path / "tables"
+    mixed = [_scored(tmp_path, "s0", "alex"), _scored(tmp_path, "s1", "vgg")]
+    with pytest.raises(ValueError, match=r"different LPIPS backbones \(\{'alex': 's0/pig/metrics/novel_view_lod0\.json', "
+                                         r"'vgg': 's1/pig/metrics/novel_view_lod0\.json'\}\)"):
+        make_tables("dna", mixed, [], ["pig"], out)
+    unnamed = [mixed[1], _scored(tmp_path, "s2", None)]
+    with pytest.raises(ValueError, match=r"s2/pig/metrics/novel_view_lod0\.json: summary does not name its LPIPS backbone"):
+        make_tables("dna", unnamed, [], ["pig"], out)
+    assert not out.exists()

@@ -17,7 +17,8 @@ from pig.data.exr import read_exr, write_exr
 from pig.stages.tables import BLANK_ROW, make_tables
 
 REPO = Path(__file__).resolve().parent.parent
-METRIC_COLUMNS = [f"{s}_{m}" for s in ("novel_view", "novel_pose") for m in ("psnr", "ssim", "lpips", "fid")]
+# The test profile scores LPIPS with AlexNet; the tables name the backbone in the header.
+METRIC_COLUMNS = [f"{s}_{m}" for s in ("novel_view", "novel_pose") for m in ("psnr", "ssim", "lpips_alex", "fid")]
 
 
 def test_exr_round_trip_is_exact(tmp_path, rng):
@@ -37,7 +38,7 @@ def _summary(root: Path, subject: str, variant: str, split: str, lod: int, psnr:
     path = root / "synthetic" / subject / variant / "metrics" / f"{split}_lod{lod}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     data = {"split": split, "lod": lod, "images": 4, "psnr": psnr, "ssim": 0.9, "lpips": math.nan, "fid": math.nan,
-            "psnr_blank": 10.0, "ssim_blank": 0.5, "lpips_note": "LPIPS weights missing",
+            "psnr_blank": 10.0, "ssim_blank": 0.5, "lpips_net": "alex", "lpips_note": "LPIPS weights missing",
             "fid_note": "FID is NaN: needs >= 2000 images per set, have 4", "splats": 100 * 2**lod,
             "model_mb": 1.0 + lod, "fps": 50.0 / (lod + 1), "device": "CPU x86_64, torch threads=2", **extra}
     path.write_text(json.dumps(data))
@@ -114,7 +115,7 @@ def test_workflow_end_to_end(tmp_path):
         assert main.loc["pig", f"{split}_psnr"] > main.loc[BLANK_ROW, f"{split}_psnr"] + 3
         assert main.loc["pig", f"{split}_ssim"] > main.loc[BLANK_ROW, f"{split}_ssim"]
     lod = pd.read_csv(tables / "synthetic_lod.csv")
-    assert {"lod", "splats", "psnr", "ssim", "lpips", "fid", "mb", "fps", "device"} <= set(lod.columns)
+    assert {"lod", "splats", "psnr", "ssim", "lpips_alex", "fid", "mb", "fps", "device"} <= set(lod.columns)
     assert (lod["splats"].diff().dropna() > 0).all() and (lod["fps"] > 0).all()
     for name in ("synthetic.md", "synthetic_lod.md", "synthetic_training.png"):
         assert (tables / name).stat().st_size > 0

@@ -29,6 +29,8 @@ SCALE = (0.458, 0.448, 0.450)
 # Indices into `features` after which LPIPS taps the activations (after each ReLU it compares).
 TAPS = {"alex": (1, 4, 7, 9, 11), "vgg": (3, 8, 15, 22, 29)}
 CHANNELS = {"alex": (64, 192, 384, 256, 256), "vgg": (64, 128, 256, 512, 512)}
+# Smallest image side whose deepest tap still has a pixel (AlexNet's stride-4 conv and two pools; VGG's 4 pools).
+MIN_SIDE = {"alex": 31, "vgg": 16}
 
 
 def backbone_features(net: str) -> nn.Sequential:
@@ -112,6 +114,9 @@ class LPIPS(nn.Module):
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         if x.shape != y.shape or x.dim() != 4 or x.shape[1] != 3:
             raise ValueError(f"LPIPS expects two (B, 3, H, W) tensors of one shape, found {tuple(x.shape)} and {tuple(y.shape)}")
+        if min(x.shape[2:]) < MIN_SIDE[self.net]:
+            raise ValueError(f"LPIPS ({self.net}) needs images of at least {MIN_SIDE[self.net]} pixels per side, "
+                             f"found {x.shape[3]}x{x.shape[2]}")
         total = x.new_zeros(x.shape[0])
         for fx, fy, lin in zip(self._activations(x), self._activations(y), self.lins):
             # Unit-normalise along channels (eps as the lpips package), weight the squared difference, average spatially.

@@ -32,7 +32,7 @@ from pig.stages._io import read_png, write_json, write_text
 class EvaluateConfig:
     """Profile section `evaluate` (read by the render, evaluate and tables stages)."""
 
-    lpips_net: Literal["alex", "vgg"] = "alex"
+    lpips_net: Literal["alex", "vgg"] = "alex"  # LPIPS backbone; peers report either, the tables name it
     lpips_backbone_weights: str | None = None  # torchvision checkpoint; None: torch hub cache
     lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
     inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: hub cache or /tmp
@@ -126,7 +126,8 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         if inception is not None:
             fid, note = fid_from_features(np.concatenate(fake), np.concatenate(real), cfg.fid_min_images)
         timing = _read_json(level_dir / "timing.json")
-        summary.update(split=split, lod=level, fid=fid, lpips_note=lpips_note, fid_note=note, **timing)
+        summary.update(split=split, lod=level, fid=fid, lpips_net=cfg.lpips_net, lpips_note=lpips_note, fid_note=note,
+                       **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
         write_json(output_dir / f"{split}_lod{level}.json", summary)

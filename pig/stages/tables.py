@@ -2,6 +2,7 @@
 
 Layouts of Section 4: Tables 1-2 (variants x novel-view / novel-pose PSNR, SSIM, LPIPS, FID, splats),
 the LOD table (splats, metrics, model MB, FPS per level), and held-out PSNR against training time.
+The LPIPS columns carry their backbone in the header (`novel_view_lpips_vgg`, `lpips_alex`, ...).
 """
 from __future__ import annotations
 
@@ -49,8 +50,29 @@ def _notes(frame: pd.DataFrame) -> str:
     return "; ".join(notes)
 
 
+def lpips_column(summaries: pd.DataFrame) -> str:
+    """`lpips_alex` or `lpips_vgg`: the LPIPS column named after the one backbone all summaries were scored with.
+
+    Peers report LPIPS with either backbone and the values differ, so a table never averages or hides them.
+    """
+    def name(row) -> str:
+        return f"{row['subject']}/{row['variant']}/metrics/{row['split']}_lod{row['lod']}.json"
+
+    nets = summaries["lpips_net"] if "lpips_net" in summaries else pd.Series(math.nan, index=summaries.index)
+    unnamed = summaries[nets.isna()]
+    if not unnamed.empty:
+        raise ValueError(f"{name(unnamed.iloc[0])}: summary does not name its LPIPS backbone (no 'lpips_net': "
+                         "written by an older evaluate stage); re-run evaluate")
+    if nets.nunique() > 1:
+        examples = {net: name(summaries[nets == net].iloc[0]) for net in sorted(nets.unique())}
+        raise ValueError(f"summaries were scored with different LPIPS backbones ({examples}); evaluate every "
+                         "subject and variant with one `evaluate.lpips_net`")
+    return f"lpips_{nets.iloc[0]}"
+
+
 def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
     """Tables 1-2: per variant (finest LOD, mean over subjects) novel-view and novel-pose metrics and splats."""
+    lpips = lpips_column(summaries)
     finest = summaries[summaries["lod"] == summaries.groupby("variant")["lod"].transform("max")]
     rows = []
     for variant in variants:
@@ -73,11 +95,12 @@ def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
                       f"{split}_lpips": math.nan, f"{split}_fid": math.nan})
     blank.update(splats=0, notes=f"{BLANK_ROW}: an all-black render scored like the methods (PSNR and SSIM only)")
     rows.append(blank)
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows).rename(columns={f"{split}_lpips": f"{split}_{lpips}" for split in SPLITS})
 
 
 def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_view") -> pd.DataFrame:
     """The LOD table: per variant and level, splats, metrics, model MB and FPS (mean over subjects)."""
+    lpips = lpips_column(summaries)
     rows = []
     for variant in variants:
         part = summaries[(summaries["variant"] == variant) & (summaries["split"] == split)]
@@ -94,7 +117,7 @@ def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_
                 "device": "; ".join(sorted(at["device"].unique())),
                 "notes": _notes(at),
             })
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows).rename(columns={"lpips": lpips})
 
 
 def to_markdown(table: pd.DataFrame, title: str) -> str:
