@@ -160,7 +160,7 @@ def test_bad_frame_access_names_the_file(preprocessed, tmp_path):
         Capture.load(tmp_path / "nothing")
     copy = _broken(preprocessed[1], tmp_path, lambda r: (r / "images" / "cam00" / "00000002.png").write_bytes(b"x"))
     capture = Capture.load(copy)
-    with pytest.raises(CaptureError, match=r"images/cam00/00000002\.png: missing or not a readable PNG"):
+    with pytest.raises(CaptureError, match=r"images/cam00/00000002\.png: image bytes could not be decoded"):
         capture.image("cam00", 2)
     with pytest.raises(CaptureError, match=r"images/cam01/00000003\.png: not in the capture"):
         capture.image("cam01", 3)
@@ -173,6 +173,22 @@ def test_bad_frame_access_names_the_file(preprocessed, tmp_path):
     cv2.imwrite(str(copy / "masks" / "cam00" / "00000001.png"), np.zeros((10, 10), np.uint8))
     with pytest.raises(CaptureError, match=r"masks/cam00/00000001\.png: image is 10x10, cameras\.json says 96x80"):
         capture.mask("cam00", 1)
+
+
+def test_truncated_image_or_mask_names_the_file_also_when_preloading(preprocessed, tmp_path):
+    """A file cut short after preprocess (a partial copy) is found when the fit, render or evaluate stage reads it."""
+    def cut(root):
+        for path in (root / "images" / "cam02" / "00000001.png", root / "masks" / "cam00" / "00000003.png"):
+            data = path.read_bytes()
+            path.write_bytes(data[:len(data) * 3 // 4])
+    capture = Capture.load(_broken(preprocessed[1], tmp_path, cut))
+    with pytest.raises(CaptureError, match=r"images/cam02/00000001\.png: truncated PNG \(\d+ bytes, no IEND chunk\)"):
+        capture.image("cam02", 1)
+    with pytest.raises(CaptureError, match=r"masks/cam00/00000003\.png: truncated PNG"):
+        capture.mask("cam00", 3)
+    with pytest.raises(CaptureError, match=r"(images/cam02/00000001|masks/cam00/00000003)\.png: truncated PNG"):
+        capture.preload()
+    assert capture.image("cam02", 0).shape == (80, 96, 3)
 
 
 def test_body_model_poses_onto_the_masks(preprocessed):

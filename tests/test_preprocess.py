@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import cv2
@@ -20,7 +21,8 @@ from pig.data.splits import SplitConfig, make_split
 from pig.data.thuman4 import Thuman4Capture
 from pig.stages.preprocess import PreprocessConfig, main, preprocess_capture
 
-NO_HOLDOUT = SplitConfig(novel_view_count=0, novel_pose_fraction=0.0)
+REPO = Path(__file__).resolve().parent.parent
+HOLD_OUT_LAST = SplitConfig(novel_view_cameras=["cam01"], novel_pose_frames=[1, 1])
 
 
 def _run(root: Path, out: Path, *extra: str) -> int:
@@ -34,9 +36,10 @@ def _leftovers(folder: Path) -> list[str]:
 # -- geometry: a known 3D point lands on the same image content before and after ---------------------------------
 
 def _blob_subject(root: Path, points_cam: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One strongly distorted camera; image = Gaussian blobs drawn at cv2.projectPoints (with distortion) of points."""
+    """cam00 strongly distorted, its frame 0 = Gaussian blobs drawn at cv2.projectPoints (with distortion) of points;
+    cam01 and frame 1 are there to be held out (HOLD_OUT_LAST)."""
     width, height = 320, 240
-    write_thuman4(root, cameras=1, frames=1, width=width, height=height, ext="png")
+    write_thuman4(root, cameras=2, frames=2, width=width, height=height, ext="png")
     K = np.array([[262.0, 0.0, 161.3], [0.0, 259.0, 118.6], [0.0, 0.0, 1.0]])
     dist = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.01])
     R, T = look_at(np.array([0.4, 0.5, 3.0]))
@@ -46,8 +49,9 @@ def _blob_subject(root: Path, points_cam: np.ndarray, sigma: float) -> tuple[np.
     image = sum(np.exp(-((xs - u) ** 2 + (ys - v) ** 2) / (2 * sigma**2)) for u, v in uv)
     cv2.imwrite(str(root / "images" / "cam00" / "00000000.png"), np.round(255 * np.dstack([image] * 3)).astype(np.uint8))
     cv2.imwrite(str(root / "masks" / "cam00" / "00000000.png"), np.full((height, width), 255, np.uint8))
-    calibration = {"cam00": {"K": K.tolist(), "R": R.tolist(), "T": T.tolist(), "imgSize": [width, height],
-                             "distCoeff": dist.tolist()}}
+    calibration = json.loads((root / "calibration.json").read_text())
+    calibration["cam00"] = {"K": K.tolist(), "R": R.tolist(), "T": T.tolist(), "imgSize": [width, height],
+                            "distCoeff": dist.tolist()}
     (root / "calibration.json").write_text(json.dumps(calibration))
     return points, uv, K
 
@@ -69,7 +73,7 @@ def test_known_point_projects_to_the_blob_after_undistort_and_resize(tmp_path, s
     points, raw_uv, K = _blob_subject(tmp_path / "raw", points_cam, sigma)
     cfg = PreprocessConfig(scale=scale, min_iou=0.0, workers=1)
     preprocess_capture(Thuman4Capture(tmp_path / "raw"), tmp_path / "out", cfg, tmp_path / "raw" / "body_model.npz",
-                       NO_HOLDOUT, "s", progress=False)
+                       HOLD_OUT_LAST, "s", progress=False)
     capture = Capture.load(tmp_path / "out")
     cam = capture.cameras["cam00"]
     assert (cam.width, cam.height) == (round(320 * scale), round(240 * scale))
@@ -165,7 +169,7 @@ def test_failed_rerun_keeps_the_previous_output_intact(tmp_path, capsys):
     before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
     (root / "images" / "cam01" / "00000002.jpg").write_bytes(b"broken")
     assert _run(root, out) == 1
-    assert "images/cam01/00000002.jpg: cannot decode the image" in capsys.readouterr().err
+    assert "images/cam01/00000002.jpg: image bytes could not be decoded" in capsys.readouterr().err
     after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
     assert after == before and _leftovers(tmp_path) == []
     (root / "images" / "cam01" / "00000002.jpg").unlink()
@@ -179,6 +183,11 @@ def _dataset_yaml(tmp_path, text: str) -> str:
     path = tmp_path / "dataset.yaml"
     path.write_text(text)
     return str(path)
+
+
+def _list_missing(root: Path, camera: str, frames) -> list[str]:
+    (root / "missing_img_files.txt").write_text("".join(f"images/{camera}/{f:08d}.jpg\n" for f in frames))
+    return []
 
 
 BAD_RUNS = {
@@ -198,6 +207,32 @@ BAD_RUNS = {
     "missing root": (lambda t, r: ["--input", str(t / "absent")], r"absent not found: put the subject there"),
     "unknown profile key": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  scael: 2\n")],
                             r"section 'preprocess': unknown key\(s\) \['scael'\]"),
+    "no novel-view camera": (
+        lambda t, r: ["--dataset", _dataset_yaml(t, "name: x\nsplit:\n  novel_view_count: 0\n")],
+        r"dataset\.yaml: section 'split': the novel_view split is empty \(0 cameras, 2 frames; novel_view_cameras: "
+        r"None, novel_view_count: 0\); train, novel_view and novel_pose each need at least one camera and frame; the "
+        r"capture has cameras \['cam00', 'cam01', 'cam02'\] and frames \[0, 1, 2\]"),
+    "no novel-pose frame": (
+        lambda t, r: ["--dataset", _dataset_yaml(t, "name: x\nsplit:\n  novel_pose_fraction: 0.0\n")],
+        r"dataset\.yaml: section 'split': the novel_pose split is empty \(3 cameras, 0 frames; novel_pose_frames: "
+        r"None, novel_pose_fraction: 0\.0, novel_pose_cameras: None\)"),
+    "novel-view images all missing": (
+        lambda t, r: _list_missing(r, "cam02", range(3))
+        + ["--dataset", _dataset_yaml(t, "name: x\nsplit:\n  novel_view_cameras: [cam02]\n")],
+        r"dataset\.yaml: section 'split': none of the novel_view split's images exist in \S+/s \(cameras "
+        r"\['cam02'\], frames \[0, 1\]: all absent or listed as missing\)"),
+    "body model of random bytes": (
+        lambda t, r: (r / "body_model.npz").write_bytes(np.random.default_rng(0).bytes(999)) and [],
+        r"^preprocess: error: \S*body_model\.npz: not a valid npz archive \(the file starts with b'.*'\); expected an "
+        r"SMPL-X model with \['v_template', .*\], a zip of \.npy arrays as numpy\.savez writes\n$"),
+    "parameters of random bytes": (
+        lambda t, r: (r / "smpl_params.npz").write_bytes(np.random.default_rng(0).bytes(999)) and [],
+        r"^preprocess: error: \S*smpl_params\.npz: not a valid npz archive \(the file starts with b'.*'\); expected "
+        r"SMPL-X parameters \(betas, global_orient, transl, body_pose, \.\.\.\), a zip of \.npy arrays as "
+        r"numpy\.savez writes\n$"),
+    "uncalibrated camera folder": (
+        lambda t, r: shutil.copytree(r / "images" / "cam02", r / "images" / "cam03") and [],
+        r"images/cam03: camera folder not listed in .*calibration\.json"),
 }
 
 
@@ -222,7 +257,16 @@ def test_bad_input_exits_with_a_message_and_writes_nothing(tmp_path, capsys, cas
     (SplitConfig(novel_pose_frames=[20, 30]), r"'novel_pose_frames' \[20, 30\] contains none of the capture's frames \(0\.\.9\)"),
     (SplitConfig(train_frames=[5, 1]), r"'train_frames' must be \[first, last\]"),
     (SplitConfig(novel_view_count=4), r"'novel_view_count' 4 must leave at least one of the 4 cameras"),
-    (SplitConfig(novel_view_count=0, drop_train_cameras={"s": ["cam0", "cam1", "cam2", "cam3"]}), r"train split is empty"),
+    (SplitConfig(novel_view_count=1, drop_train_cameras={"s": ["cam0", "cam1", "cam3"]}),
+     r"the train split is empty \(0 cameras, 7 frames; .*drop_train_cameras: \{'s': \['cam0', 'cam1', 'cam3'\]\}"),
+    (SplitConfig(novel_view_count=0), r"novel_view split is empty \(0 cameras, 7 frames; novel_view_cameras: None, "
+                                      r"novel_view_count: 0\).*cameras \['cam0', 'cam1', 'cam2', 'cam3'\] and frames "
+                                      r"\[0, 1, ..., 9\] \(10\)"),
+    (SplitConfig(novel_view_cameras=[]), r"novel_view split is empty \(0 cameras"),
+    (SplitConfig(novel_pose_fraction=0.0), r"novel_pose split is empty \(4 cameras, 0 frames; novel_pose_frames: None, "
+                                           r"novel_pose_fraction: 0\.0"),
+    (SplitConfig(novel_pose_cameras=[]),
+     r"novel_pose split is empty \(0 cameras, 3 frames; .*novel_pose_cameras: \[\]"),
 ])
 def test_split_errors(cfg, message):
     with pytest.raises(CaptureError, match=message):

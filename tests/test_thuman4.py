@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -106,9 +107,29 @@ BAD_SUBJECTS = {
                         r"smpl_params\.npz: 'body_pose' has shape \(4, 60\), expected \(4, 63\)"),
     "transl rows": (lambda r: _edit_params(r, transl=np.zeros((3, 3))), r"'transl' has shape \(3, 3\), expected \(4, 3\)"),
     "betas rows": (lambda r: _edit_params(r, betas=np.zeros((2, 10))), r"'betas' has shape \(2, 10\)"),
-    "params not npz": (lambda r: (r / "smpl_params.npz").write_bytes(b"not a zip"), r"smpl_params\.npz: not a readable npz"),
-    "camera folder absent": (lambda r: [p.unlink() for p in (r / "masks" / "cam01").iterdir()] and (r / "masks" / "cam01").rmdir(),
-                             r"masks/cam01: camera folder not found"),
+    "params not npz": (lambda r: (r / "smpl_params.npz").write_bytes(b"not a zip"),
+                       r"smpl_params\.npz: not a valid npz archive \(the file starts with b'not '\); expected SMPL-X"),
+    "params truncated": (lambda r: (r / "smpl_params.npz").write_bytes((r / "smpl_params.npz").read_bytes()[:3000]),
+                         r"smpl_params\.npz: not a valid npz archive \(truncated or corrupt"),
+    "camera folder absent": (lambda r: shutil.rmtree(r / "masks" / "cam01"),
+                             r"masks/cam01: camera folder not found, but .*calibration\.json lists camera 'cam01'"),
+    "image folder absent": (lambda r: shutil.rmtree(r / "images" / "cam00"),
+                            r"images/cam00: camera folder not found, but .*calibration\.json lists camera 'cam00'"),
+    "uncalibrated camera folder": (lambda r: shutil.copytree(r / "images" / "cam01", r / "images" / "cam02"),
+                                   r"images/cam02: camera folder not listed in .*calibration\.json \(uncalibrated "
+                                   r"folder\(s\) in images/: \['cam02'\]; calibrated cameras: \['cam00', 'cam01'\]\)"),
+    "uncalibrated mask folder": (lambda r: (r / "masks" / "cam7").mkdir(), r"masks/cam7: camera folder not listed in"),
+    "distCoeff a string": (_set("distCoeff", "-0.12 0.03 0.001 -0.0015 0.0"),
+                           r"calibration\.json: camera 'cam01': 'distCoeff' must hold 4 or 5 or 8 or 12 or 14 finite "
+                           r"numbers \(OpenCV distortion\), found '-0\.12 0\.03"),
+    "distCoeff of strings": (_set("distCoeff", ["-0.12", "0.03", "0", "0", "0"]),
+                             r"camera 'cam01': 'distCoeff' must hold"),
+    "distCoeff ragged": (_set("distCoeff", [[0.1, 0.0], [0.0]]), r"camera 'cam01': 'distCoeff' must hold"),
+    "distCoeff null": (_set("distCoeff", None), r"camera 'cam01': 'distCoeff' must hold .* found None"),
+    "K a string": (_set("K", "[[1, 0, 0], [0, 1, 0], [0, 0, 1]]"),
+                   r"camera 'cam01': 'K' must be 9 numbers, found '\[\[1"),
+    "T of strings": (_set("T", ["0", "1", "2"]), r"camera 'cam01': 'T' must be 3 numbers, found \['0', '1', '2'\]"),
+    "imgSize a mapping": (_set("imgSize", {"w": 96, "h": 80}), r"camera 'cam01': 'imgSize' must be 2 numbers"),
     "image without params": (lambda r: (r / "images" / "cam01" / "00000004.jpg").write_bytes(
         (r / "images" / "cam01" / "00000000.jpg").read_bytes()), r"images/cam01: 1 frame\(s\) from 4 on have no body parameters.*disagree"),
     "image absent, not listed": (lambda r: (r / "images" / "cam00" / "00000002.jpg").unlink(),
@@ -138,13 +159,43 @@ def test_missing_root_says_where_to_put_the_data(tmp_path):
         open_capture("thuman5", tmp_path)
 
 
+def test_params_of_random_bytes_name_the_file_without_suggesting_pickles(tmp_path):
+    root = write_thuman4(tmp_path / "s", cameras=2, frames=4)
+    (root / "smpl_params.npz").write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(CaptureError, match=r"smpl_params\.npz: not a valid npz archive") as error:
+        Thuman4Capture(root)
+    assert "pickle" not in str(error.value) and "\n" not in str(error.value)
+
+
+def _cut(path, fraction=0.75):
+    data = path.read_bytes()
+    path.write_bytes(data[:int(len(data) * fraction)])
+
+
+@pytest.mark.parametrize("ext", ["jpg", "png"])
+def test_truncated_image_or_mask_is_an_error_naming_the_file(tmp_path, ext):
+    root = write_thuman4(tmp_path / "s", cameras=2, frames=3, width=192, height=160, ext=ext)
+    _cut(root / "images" / "cam00" / f"00000001.{ext}")
+    _cut(root / "masks" / "cam01" / f"00000002.{ext}")
+    capture = Thuman4Capture(root)
+    expected = "truncated or corrupt JPEG" if ext == "jpg" else "truncated PNG"
+    with pytest.raises(CaptureError, match=rf"images/cam00/00000001\.{ext}: {expected}"):
+        capture.read_image("cam00", 1)
+    with pytest.raises(CaptureError, match=rf"masks/cam01/00000002\.{ext}: {expected}"):
+        capture.read_mask("cam01", 2)
+    assert capture.read_image("cam01", 2).shape == (160, 192, 3)  # the image beside the cut mask is fine
+
+
 def test_unreadable_or_wrongly_sized_images_fail_on_read(tmp_path):
     root = write_thuman4(tmp_path / "s", cameras=2, frames=3)
     (root / "images" / "cam00" / "00000001.jpg").write_bytes(b"\xff\xd8 truncated")
+    (root / "images" / "cam01" / "00000001.jpg").write_bytes(b"no image")
     cv2.imwrite(str(root / "masks" / "cam01" / "00000002.jpg"), np.zeros((40, 96), np.uint8))
     capture = Thuman4Capture(root)
-    with pytest.raises(CaptureError, match=r"images/cam00/00000001\.jpg: cannot decode the image"):
+    with pytest.raises(CaptureError, match=r"images/cam00/00000001\.jpg: truncated or corrupt JPEG"):
         capture.read_image("cam00", 1)
+    with pytest.raises(CaptureError, match=r"images/cam01/00000001\.jpg: image bytes could not be decoded"):
+        capture.read_image("cam01", 1)
     with pytest.raises(CaptureError, match=r"masks/cam01/00000002\.jpg: image is 96x40 \(WxH\), but calibration\.json "
                                            r"gives imgSize \[96, 80\]"):
         capture.read_mask("cam01", 2)

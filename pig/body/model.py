@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .npz import read_npz
 from .rotation import axis_angle_to_matrix
 
 NUM_JOINTS = 55
@@ -31,6 +32,7 @@ SMPLX_JOINT_NAMES = [
 LEFT_HAND = slice(25, 40)
 RIGHT_HAND = slice(40, 55)
 REQUIRED_KEYS = ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
+HAND_MEAN_KEYS = ("hands_meanl", "hands_meanr")  # optional; zero when absent
 
 
 class BodyModelError(ValueError):
@@ -107,7 +109,7 @@ class BodyModel(nn.Module):
         self.register_buffer("weights", torch.from_numpy(weights))
         self.parents = parents.tolist()
         hands_mean = np.zeros((NUM_JOINTS, 3))
-        for key, part in (("hands_meanl", LEFT_HAND), ("hands_meanr", RIGHT_HAND)):
+        for key, part in zip(HAND_MEAN_KEYS, (LEFT_HAND, RIGHT_HAND)):
             if key in arrays:
                 hands_mean[part] = np.asarray(arrays[key], dtype=np.float64).reshape(15, 3)
         self.register_buffer("hands_mean", torch.from_numpy(hands_mean))
@@ -118,11 +120,8 @@ class BodyModel(nn.Module):
         path = Path(path)
         if not path.is_file():
             raise BodyModelError(f"body model file {path} does not exist (expected an SMPL-X npz such as SMPLX_NEUTRAL.npz)")
-        try:
-            with np.load(path, allow_pickle=True) as data:
-                arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError) as err:
-            raise BodyModelError(f"{path}: not a readable npz file: {err}") from None
+        arrays = read_npz(path, BodyModelError, f"an SMPL-X model with {list(REQUIRED_KEYS)}",
+                          keys=REQUIRED_KEYS + HAND_MEAN_KEYS, pickled=("J_regressor",))
         return cls(arrays, source=str(path), dtype=dtype)
 
     @property

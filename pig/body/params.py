@@ -13,6 +13,7 @@ import warnings
 import numpy as np
 
 from .model import NUM_JOINTS
+from .npz import read_npz
 
 # THuman4 keys -> joint slice of the full pose; eyes (23, 24) stay zero.
 THUMAN_POSE_KEYS = {
@@ -73,11 +74,7 @@ def _read_npz(path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise ParamsError(f"{path}: body parameter file not found")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
-    except (OSError, ValueError) as err:
-        raise ParamsError(f"{path}: not a readable npz file: {err}") from None
+    return read_npz(path, ParamsError, "SMPL-X body parameters")
 
 
 def _require(arrays, keys, path) -> None:

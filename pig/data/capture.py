@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from pig.body.model import BodyModel
 from pig.body.params import ParamsError, SmplxParams
+from pig.data.images import read_image
 from pig.data.raw import CaptureError
 from pig.data.splits import SPLITS
 
@@ -153,9 +154,7 @@ class Capture:
         if not self.has(camera, frame):
             raise CaptureError(f"{path}: not in the capture (camera {camera} has no image and mask for frame {frame})")
         flag = cv2.IMREAD_COLOR if kind == "images" else cv2.IMREAD_GRAYSCALE
-        data = cv2.imread(str(path), flag)
-        if data is None:
-            raise CaptureError(f"{path}: missing or not a readable PNG")
+        data = read_image(path, flag)
         cam = self.cameras[camera]
         if data.shape[:2] != (cam.height, cam.width):
             raise CaptureError(f"{path}: image is {data.shape[1]}x{data.shape[0]}, cameras.json says "

@@ -29,6 +29,7 @@ import numpy as np
 
 from pig.body.model import LEFT_HAND, RIGHT_HAND, BodyModel
 from pig.body.params import ParamsError, SmplxParams, from_dna
+from pig.data.images import decode_image
 from pig.data.raw import CaptureError, RawCamera
 
 CAMERA_GROUPS = ("Camera_5mp", "Camera_12mp")  # cams 0..47 and 48..59 in the released data
@@ -114,9 +115,7 @@ def _decode(handle: h5py.File, path: str, flags: int = cv2.IMREAD_COLOR) -> np.n
     if data.dtype != np.uint8 or data.ndim != 1:
         raise CaptureError(f"{_where(handle, path)}: expected encoded image bytes (1-D uint8), "
                            f"found {data.dtype} array of shape {data.shape}")
-    image = cv2.imdecode(data, flags)
-    if image is None:
-        raise CaptureError(f"{_where(handle, path)}: image bytes could not be decoded (expected JPEG or PNG)")
+    image = decode_image(data, _where(handle, path), flags)
     if image.dtype != np.uint8:
         raise CaptureError(f"{_where(handle, path)}: expected an 8-bit image, found {image.dtype}")
     return image

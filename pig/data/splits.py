@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 from pig.data.raw import CaptureError
 
@@ -84,7 +85,35 @@ def make_split(cameras: list[str], frames: list[int], cfg: SplitConfig, subject:
         "novel_view": {"cameras": novel_view, "frames": train_frames},
         "novel_pose": {"cameras": novel_pose_cameras, "frames": novel_pose_frames},
     }
-    if not (train_cameras and train_frames):
-        raise CaptureError(f"{where}: the train split is empty ({len(train_cameras)} cameras, "
-                           f"{len(train_frames)} frames of {len(frames)})")
+    # Each split's settings, named in the error when it comes out empty.
+    settings = {"train": ("train_frames", "novel_pose_frames", "novel_pose_fraction", "drop_train_cameras",
+                          "novel_view_cameras", "novel_view_count"),
+                "novel_view": ("novel_view_cameras", "novel_view_count"),
+                "novel_pose": ("novel_pose_frames", "novel_pose_fraction", "novel_pose_cameras")}
+    for name in SPLITS:
+        part = split[name]
+        if not (part["cameras"] and part["frames"]):
+            given = ", ".join(f"{key}: {getattr(cfg, key)!r}" for key in settings[name])
+            raise CaptureError(
+                f"{where}: the {name} split is empty ({len(part['cameras'])} cameras, {len(part['frames'])} frames; "
+                f"{given}); train, novel_view and novel_pose each need at least one camera and frame; the capture "
+                f"has cameras {brief(cameras)} and frames {brief(frames)}")
     return split
+
+
+def require_views(split: dict[str, dict[str, list]], has_view: Callable[[str, int], bool], where: str,
+                  source) -> None:
+    """CaptureError naming `where` and the capture `source` if a split has no (camera, frame) with an image."""
+    for name in SPLITS:
+        part = split[name]
+        if not any(has_view(c, f) for c in part["cameras"] for f in part["frames"]):
+            raise CaptureError(f"{where}: none of the {name} split's images exist in {source} (cameras "
+                               f"{brief(part['cameras'])}, frames {brief(part['frames'])}: all absent or listed as "
+                               "missing)")
+
+
+def brief(ids: list) -> str:
+    """A list of ids for a message: in full when short, else its ends and its length."""
+    if len(ids) <= 8:
+        return str(list(ids))
+    return f"[{ids[0]!r}, {ids[1]!r}, ..., {ids[-1]!r}] ({len(ids)})"

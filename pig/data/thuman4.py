@@ -12,11 +12,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pig.body.npz import read_npz
 from pig.body.params import ParamsError, SmplxParams, from_thuman
+from pig.data.images import read_image
 from pig.data.raw import CaptureError, RawCamera
 
 CALIBRATION = "calibration.json"
 PARAMS = "smpl_params.npz"
+PARAMS_EXPECTED = "SMPL-X parameters (betas, global_orient, transl, body_pose, ...)"
 MISSING_LISTS = {"images": "missing_img_files.txt", "masks": "missing_msk_files.txt"}
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 LAYOUT = ("images/camXX/%08d.jpg (or .png), masks/camXX/%08d.jpg (or .png), calibration.json, smpl_params.npz, "
@@ -44,13 +47,10 @@ class Thuman4Capture:
         self.source = Path(root)
         required_files(self.source)
         self.cameras = read_calibration(self.source / CALIBRATION)
+        self._check_camera_folders()
         params_path = self.source / PARAMS
         try:
-            with np.load(params_path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError) as err:
-            raise CaptureError(f"{params_path}: not a readable npz file: {err}") from None
-        try:
+            arrays = read_npz(params_path, ParamsError, PARAMS_EXPECTED)
             self.params: SmplxParams = from_thuman(arrays, str(params_path))
         except ParamsError as err:
             raise CaptureError(str(err)) from None
@@ -72,17 +72,13 @@ class Thuman4Capture:
 
     def read_image(self, camera: str, frame: int) -> np.ndarray:
         path = self._path("images", camera, frame)
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if image is None:
-            raise CaptureError(f"{path}: cannot decode the image (corrupt or not an image file)")
+        image = read_image(path, cv2.IMREAD_COLOR)
         self._check_size(image, camera, path)
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
     def read_mask(self, camera: str, frame: int) -> np.ndarray:
         path = self._path("masks", camera, frame)
-        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if mask is None:
-            raise CaptureError(f"{path}: cannot decode the mask (corrupt or not an image file)")
+        mask = read_image(path, cv2.IMREAD_GRAYSCALE)
         self._check_size(mask, camera, path)
         return mask
 
@@ -105,10 +101,24 @@ class Thuman4Capture:
             raise CaptureError(f"{path}: image is {image.shape[1]}x{image.shape[0]} (WxH), but {CALIBRATION} "
                                f"gives imgSize [{cam.width}, {cam.height}] for {camera}")
 
+    def _check_camera_folders(self) -> None:
+        """A camera folder without calibration is an error, not skipped: the split holds out cameras by their
+        position in the calibration, so a silently dropped camera would shift which cameras are held out."""
+        for kind in ("images", "masks"):
+            uncalibrated = sorted(p.name for p in (self.source / kind).iterdir()
+                                  if p.is_dir() and not p.name.startswith(".") and p.name not in self.cameras)
+            if uncalibrated:
+                raise CaptureError(
+                    f"{self.source / kind / uncalibrated[0]}: camera folder not listed in {self.source / CALIBRATION} "
+                    f"(uncalibrated folder(s) in {kind}/: {uncalibrated}; calibrated cameras: {list(self.cameras)}); "
+                    f"add the camera to {CALIBRATION} or move the folder out of {kind}/")
+
     def _index(self, folder: Path) -> dict[int, Path]:
         """Frame id -> file of one camera folder; two files for one frame are an error."""
         if not folder.is_dir():
-            raise CaptureError(f"{folder}: camera folder not found (the camera is in {CALIBRATION}); expected {LAYOUT}")
+            raise CaptureError(f"{folder}: camera folder not found, but {self.source / CALIBRATION} lists camera "
+                               f"{folder.name!r}; add the folder or remove the camera from {CALIBRATION} "
+                               f"(expected {LAYOUT})")
         files: dict[int, Path] = {}
         for entry in folder.iterdir():
             match = _FRAME_FILE.match(entry.stem)
@@ -166,13 +176,26 @@ def read_calibration(path: Path) -> dict[str, RawCamera]:
     return {str(name): _camera(str(name), entry, path) for name, entry in data.items()}
 
 
+def _numbers(value) -> np.ndarray | None:
+    """float64 array of a JSON number or (nested) list of numbers; None for strings, null, mappings, ragged lists."""
+    try:
+        array = np.asarray(value)
+    except ValueError:  # ragged nesting
+        return None
+    return array.astype(np.float64) if array.dtype.kind in "iuf" else None
+
+
+def _shown(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
 def _matrix(entry: dict, key: str, size: int, where: str) -> np.ndarray:
     if key not in entry:
         raise CaptureError(f"{where}: missing key '{key}'; found {sorted(entry)}")
-    try:
-        value = np.asarray(entry[key], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise CaptureError(f"{where}: '{key}' must be numeric, found {entry[key]!r}") from None
+    value = _numbers(entry[key])
+    if value is None:
+        raise CaptureError(f"{where}: '{key}' must be {size} numbers, found {_shown(entry[key])}")
     if value.size != size:
         raise CaptureError(f"{where}: '{key}' has shape {value.shape}, expected {size} numbers")
     if not np.all(np.isfinite(value)):
@@ -189,10 +212,11 @@ def _camera(name: str, entry, path: Path) -> RawCamera:
     T = _matrix(entry, "T", 3, where)
     if "distCoeff" not in entry:
         raise CaptureError(f"{where}: missing key 'distCoeff' (OpenCV distortion, length 5); found {sorted(entry)}")
-    dist = np.asarray(entry["distCoeff"], dtype=np.float64).reshape(-1)
-    if dist.size not in _DIST_LENGTHS or not np.all(np.isfinite(dist)):
-        raise CaptureError(f"{where}: 'distCoeff' must hold {' or '.join(map(str, _DIST_LENGTHS))} finite numbers, "
-                           f"found {entry['distCoeff']!r}")
+    dist = _numbers(entry["distCoeff"])
+    if dist is None or dist.size not in _DIST_LENGTHS or not np.all(np.isfinite(dist)):
+        raise CaptureError(f"{where}: 'distCoeff' must hold {' or '.join(map(str, _DIST_LENGTHS))} finite numbers "
+                           f"(OpenCV distortion), found {_shown(entry['distCoeff'])}")
+    dist = dist.reshape(-1)
     size = _matrix(entry, "imgSize", 2, where)
     if np.any(size < 1) or np.any(size != np.round(size)):
         raise CaptureError(f"{where}: 'imgSize' must be [width, height] in pixels, found {entry['imgSize']!r}")

@@ -28,7 +28,7 @@ from pig.data.formats import FORMATS, capture_format, open_capture
 from pig.data.projection_check import ProjectionCheckError, Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
-from pig.data.splits import SplitConfig, make_split
+from pig.data.splits import SplitConfig, make_split, require_views
 from pig.stages._cli import add_common_arguments, run_cli
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
@@ -102,12 +102,11 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
     body_model = Path(body_model)
     cameras = list(raw.cameras)
     split = make_split(cameras, raw.frames, split_cfg, subject, split_source)
+    require_views(split, raw.has_frame, split_source, raw.source)
     needed = {(c, f) for part in split.values() for c in part["cameras"] for f in part["frames"]}
     pairs = [(c, f) for c in cameras for f in raw.frames if (c, f) in needed and raw.has_frame(c, f)]
     frames = sorted({f for part in split.values() for f in part["frames"]})
     model = BodyModel.from_file(body_model, dtype=torch.float64)
-    if not pairs:
-        raise CaptureError(f"{raw.source}: none of the split's images exist (all listed as missing)")
 
     sizes = {c: output_size(cam.width, cam.height, cfg.scale, cfg.max_side) for c, cam in raw.cameras.items()}
     views = {c: View(scaled_intrinsics(cam.K, sizes[c][0] / cam.width, sizes[c][1] / cam.height), cam.R, cam.T,

@@ -1,0 +1,79 @@
+"""Reading `.npz` archives (body parameters, body models) without running code from the file.
+
+`numpy.load` unpickles anything that is not a zip or .npy file when pickles are allowed, and otherwise
+answers a random-bytes file with advice to allow them. Here a file that is not a zip archive is refused
+by its first bytes, members are read as plain arrays, and a member holding pickled objects is only
+unpickled when the caller allows it for that key, and then only into numpy arrays and scipy sparse
+matrices (some SMPL-X files store `J_regressor` so); data preparation, no paper equation.
+"""
+from __future__ import annotations
+
+import pickle
+import zipfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a local file header, or the end record of an empty archive
+_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+_NUMPY_GLOBALS = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+                  ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
+                  ("numpy", "ndarray"), ("numpy", "dtype")}
+_SPARSE_CLASSES = {f"{fmt}_{kind}" for fmt in ("csr", "csc", "coo") for kind in ("matrix", "array")}
+
+
+class _ArraysOnlyUnpickler(pickle.Unpickler):
+    """Rebuilds numpy arrays and scipy sparse matrices; any other global (a function to call) is refused."""
+
+    def find_class(self, module: str, name: str):
+        allowed = (module, name) in _NUMPY_GLOBALS or (module.startswith("scipy.sparse") and name in _SPARSE_CLASSES)
+        if not allowed:
+            raise pickle.UnpicklingError(f"refused to load {module}.{name}")
+        return super().find_class(module, name)
+
+
+def read_npz(path: str | Path, error: type[Exception], expected: str, keys=None,
+             pickled: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """Arrays of the npz at `path` (only `keys` if given, those present); `error(message naming the file)` on
+    anything that is not a readable npz archive. Keys in `pickled` may hold numpy arrays or scipy sparse
+    matrices stored as pickled objects; other object members are an error."""
+    path = Path(path)
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(4)
+        if head not in ZIP_MAGIC:
+            shown = f"starts with {head!r}" if head else "is empty"
+            raise error(f"{path}: not a valid npz archive (the file {shown}); expected {expected}, "
+                        "a zip of .npy arrays as numpy.savez writes")
+        with zipfile.ZipFile(path) as archive:
+            members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
+            wanted = members if keys is None else [k for k in keys if k in members]
+            return {key: _member(archive, members[key], key in pickled, path, error) for key in wanted}
+    except (OSError, zipfile.BadZipFile, zlib.error, EOFError) as err:
+        raise error(f"{path}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}") from None
+
+
+def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path: Path, error: type[Exception]) -> np.ndarray:
+    key = name[:-4]
+    with archive.open(name) as member:
+        try:
+            version = np.lib.format.read_magic(member)
+            if version not in _HEADER_READERS:
+                raise ValueError(f"unsupported .npy format version {version}")
+            _, _, dtype = _HEADER_READERS[version](member)
+            if not dtype.hasobject:
+                with archive.open(name) as again:  # read_array reads the header itself
+                    return np.lib.format.read_array(again, allow_pickle=False)
+        except ValueError as err:
+            raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
+        if not pickled_ok:
+            raise error(f"{path}: '{key}' holds pickled Python objects, which are not loaded (loading them could "
+                        "run code); expected a numeric array")
+        try:
+            return np.asarray(_ArraysOnlyUnpickler(member).load())
+        except (zipfile.BadZipFile, zlib.error):
+            raise  # a corrupt archive, reported by read_npz
+        except Exception as err:  # any failure of the restricted unpickler means the member is not plain data
+            raise error(f"{path}: '{key}' holds pickled objects other than numpy arrays or scipy sparse matrices "
+                        f"({err}); they are not loaded because loading them could run code") from None
