@@ -11,6 +11,7 @@ from pathlib import Path
 
 from pig.config import ConfigError, load_profile, load_section
 from pig.data.synthetic import SyntheticConfig, SyntheticError, generate_capture
+from pig.stages._outputs import OutputError
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -19,7 +20,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path (default: cpu-demo)")
     parser.add_argument("--seed", type=int, default=None, help="override synthetic.seed")
     parser.add_argument("--workers", type=int, default=None, help="override synthetic.workers (render processes)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing non-empty output folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing non-empty output folder that is not an earlier generated capture")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser.parse_args(argv)
 
@@ -31,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_section(load_profile(args.profile), "synthetic", SyntheticConfig, overrides)
         start = time.perf_counter()
         out = generate_capture(args.output, cfg, overwrite=args.overwrite, progress=not args.quiet)
-    except (ConfigError, SyntheticError) as err:
+    except (ConfigError, SyntheticError, OutputError) as err:
         print(f"generate: {err}", file=sys.stderr)
         return 2
     print(f"generate: wrote {cfg.cameras} cameras x {cfg.frames} frames ({cfg.width}x{cfg.height}) to {out} "
