@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import os
 import resource
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -24,6 +24,7 @@ import torch
 from pig.render import render_gaussians
 from pig.render.cpu_compositor import row_spans
 from pig.render.projection import project_splats
+from pig.stages._io import write_text
 
 
 def make_scene(n: int, width: int, height: int, device: str, seed: int = 0, sh_degree: int = 3):
@@ -116,12 +117,11 @@ def peak_memory(n: int, size: int) -> None:
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False, newline="") as tmp:
-        writer = csv.DictWriter(tmp, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp.name, path)
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(path, buffer.getvalue())
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -55,6 +55,10 @@ def test_render_and_evaluate_a_split_with_two_image_sizes(fitted, tmp_path):
     cfg = EvaluateConfig(timing_frames=1)
     renders = tmp_path / "renders" / "novel_pose"
     render_split(checkpoint, capture, "novel_pose", renders, cfg, RasterizerConfig(backend="cpu"))
+    (renders / "stale.png").write_bytes(b"")
+    # A rerun over the stage's own output needs no --overwrite and replaces the whole folder.
+    render_split(checkpoint, capture, "novel_pose", renders, cfg, RasterizerConfig(backend="cpu"))
+    assert not (renders / "stale.png").exists() and [p.name for p in renders.parent.iterdir()] == ["novel_pose"]
 
     cameras = json.loads((capture / "cameras.json").read_text())
     for cam in split["cameras"]:
@@ -63,6 +67,7 @@ def test_render_and_evaluate_a_split_with_two_image_sizes(fitted, tmp_path):
             assert image.shape[:2] == (cameras[cam]["height"], cameras[cam]["width"]), cam
     assert cameras[small]["width"] * 2 == cameras[split["cameras"][1]]["width"]
 
+    assert evaluate_split(capture, renders, "novel_pose", tmp_path / "metrics", cfg)  # a rerun over its own output
     csvs = evaluate_split(capture, renders, "novel_pose", tmp_path / "metrics", cfg)
     table = pd.read_csv(csvs[0])
     assert len(table) == len(split["cameras"]) * len(split["frames"])

@@ -20,9 +20,11 @@ from pig.data.synthetic_garment import AROUND
 from pig.data.synthetic_rig import pixel_rays
 from pig.data.synthetic_texture import ValueNoise, body_albedo, garment_albedo
 from pig.stages import generate
+from pig.stages._cli import run_cli
+from pig.stages._outputs import MARKER
 
 J = {name: i for i, name in enumerate(SMPLX_JOINT_NAMES)}
-TOP_LEVEL = {"images", "masks", "calibration.json", "smpl_params.npz", "body_model.npz", "gt_meshes.npz"}
+TOP_LEVEL = {"images", "masks", "calibration.json", "smpl_params.npz", "body_model.npz", "gt_meshes.npz", MARKER}
 
 
 @pytest.fixture(scope="module")
@@ -136,9 +138,14 @@ def test_worker_processes_write_the_same_capture(tmp_path, cfg):
     assert all((one / rel).read_bytes() == (two / rel).read_bytes() for rel in images)
 
 
-def test_existing_output_is_refused(capture, capsys):
-    assert generate.main(["--output", str(capture), "--profile", "test", "--quiet"]) == 2
-    assert "already exists" in capsys.readouterr().err
+def test_existing_output_is_refused_unless_it_is_a_generated_capture(tmp_path, capsys):
+    foreign = tmp_path / "subject00"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    assert run_cli(generate.main, ["--output", str(foreign), "--profile", "test", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert f"generate: error: {foreign}: holds files the generate stage did not write (notes.txt); pass --overwrite" in err
+    assert [p.name for p in foreign.iterdir()] == ["notes.txt"] and [p.name for p in tmp_path.iterdir()] == ["subject00"]
 
 
 def test_failed_generation_leaves_nothing(tmp_path, cfg, monkeypatch):

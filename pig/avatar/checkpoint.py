@@ -4,11 +4,12 @@ Written atomically (temporary name, then rename); `load_avatar` is the render st
 """
 from __future__ import annotations
 
-import os
 from dataclasses import asdict
 from pathlib import Path
 
 import torch
+
+from pig.stages._io import atomic_path
 
 from .build import build_avatar
 
@@ -23,13 +24,8 @@ def save_checkpoint(path: Path, model, spec: dict, optimizers: list, generator: 
         "torch_rng": torch.get_rng_state(), "iteration": iteration, "wall_s": wall_s, "log": log_rows,
         "fit": asdict(fit_cfg),
     }
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    with atomic_path(path) as tmp:
         torch.save(state, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _weights(model) -> dict:

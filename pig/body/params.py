@@ -12,6 +12,8 @@ import warnings
 
 import numpy as np
 
+from pig.stages._io import atomic_path
+
 from .model import NUM_JOINTS
 from .npz import read_npz
 
@@ -46,12 +48,10 @@ class SmplxParams:
 
     def save(self, path: str | Path, frame_ids=None) -> None:
         """Write the preprocessed `smplx.npz` (poses as (N, 165)); atomic."""
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp.npz")
         ids = np.arange(self.num_frames) if frame_ids is None else np.asarray(frame_ids)
-        np.savez(tmp, poses=self.full_pose.reshape(self.num_frames, -1), betas=self.betas[None],
-                 expression=self.expression, transl=self.transl, frames=ids)
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            np.savez(tmp, poses=self.full_pose.reshape(self.num_frames, -1), betas=self.betas[None],
+                     expression=self.expression, transl=self.transl, frames=ids)
 
     @classmethod
     def load(cls, path: str | Path) -> tuple["SmplxParams", np.ndarray]:

@@ -5,8 +5,6 @@ SMPLX_NEUTRAL.npz is configured: marching cubes of a smooth union of round cones
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +12,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import nnls
 from skimage.measure import marching_cubes
+
+from pig.stages._io import atomic_path
 
 from .model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, SMPLX_JOINT_NAMES, SMPLX_PARENTS
 
@@ -352,13 +352,6 @@ def make_standin_arrays(seed: int = 0, spacing: float = GRID_SPACING) -> dict[st
 def write_standin(path: str | Path, seed: int = 0) -> Path:
     """Write the stand-in model npz to `path` atomically; returns the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         np.savez(tmp, **make_standin_arrays(seed))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

@@ -4,11 +4,12 @@ Storage only; uses the `OpenEXR` 3.x API (`OpenEXR.File`), ZIP-compressed scanli
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
+
+from pig.stages._io import atomic_path
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
@@ -21,14 +22,8 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
         raise ValueError(f"{path}: expected 2-D (H, W) channels of one shape, found {shapes}")
     data = {name: np.ascontiguousarray(values, dtype=np.float32) for name, values in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.exr")
-    try:
-        with OpenEXR.File(header, data) as handle:
-            handle.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path) as tmp, OpenEXR.File(header, data) as handle:
+        handle.write(str(tmp))
 
 
 def read_exr(path: str | Path) -> dict[str, np.ndarray]:

@@ -23,6 +23,7 @@ from pig.body.model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, BodyModel
 from pig.data.dna import ANNOTS_SUFFIX, CALIBRATION, CAMERA_GROUPS, MASKS, SMPLX, bgr_matrix_to_rgb, model_gender
 from pig.data.raw import CaptureError, RawCapture
 from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._io import atomic_path
 
 DNA_NUM_5MP = 48  # cams 0..47 are Camera_5mp in the released data, the rest Camera_12mp
 # Actor facts an export cannot know; override with `actor=` / `--actor KEY=VALUE`. The download page
@@ -88,10 +89,9 @@ def write_smc(capture: RawCapture, out_dir: str | Path, sequence: str, body_mode
     main_path = out_dir / f"{sequence}.smc"
     annots_path = out_dir / "annotations" / f"{sequence}{ANNOTS_SUFFIX}.smc"
     annots_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp_main, tmp_annots = (p.with_name(p.name + ".tmp") for p in (main_path, annots_path))
     frames = list(capture.frames)
     total = len(names) * len(frames)
-    try:
+    with atomic_path(main_path) as tmp_main, atomic_path(annots_path) as tmp_annots:
         with h5py.File(tmp_main, "w") as main, h5py.File(tmp_annots, "w") as annots, \
                 tqdm(total=total, desc=f"write {sequence}.smc", unit="img") as progress:
             for key, value in attributes.items():
@@ -121,11 +121,6 @@ def write_smc(capture: RawCapture, out_dir: str | Path, sequence: str, body_mode
                         color[str(index)] = _encode(capture.read_image(name, frame)[..., ::-1], image_ext, jpeg_quality)
                         mask[str(index)] = _encode(capture.read_mask(name, frame), image_ext, jpeg_quality)
             _write_params(annots.create_group(SMPLX), capture, hands_mean)
-        tmp_main.replace(main_path)
-        tmp_annots.replace(annots_path)
-    finally:
-        for tmp in (tmp_main, tmp_annots):
-            tmp.unlink(missing_ok=True)
     return main_path, annots_path
 
 

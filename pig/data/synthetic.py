@@ -8,9 +8,6 @@ from __future__ import annotations
 import functools
 import json
 import multiprocessing
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +18,7 @@ from tqdm import tqdm
 
 from pig.body.model import BodyModel
 from pig.body.standin import make_standin_arrays
+from pig.stages._outputs import build_dir, claim_dir
 
 from .raw import RawCamera
 from .synthetic_garment import build_skirt, pose_skirt, secondary_motion
@@ -219,14 +217,11 @@ def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = Fals
 
     Contents: images/camXX/%08d.jpg, masks/camXX/%08d.jpg (0/255), calibration.json, smpl_params.npz,
     body_model.npz (the model used) and gt_meshes.npz (true per-frame body and garment vertices).
+    An existing `out_dir` is replaced only when it is an earlier generated capture, or with `overwrite`.
     """
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not overwrite and any(out_dir.iterdir()):
-        raise SyntheticError(f"{out_dir} already exists and is not empty (pass overwrite=True / --overwrite)")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    out_dir = claim_dir(out_dir, "generate", overwrite=overwrite)
     scene = build_scene(cfg)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with build_dir(out_dir, "generate") as tmp:
         for kind in ("images", "masks"):
             for camera in scene.cameras:
                 (tmp / kind / camera.name).mkdir(parents=True)
@@ -242,12 +237,6 @@ def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = Fals
             garment_hem=scene.hem, times=scene.times, frames=np.arange(cfg.frames),
         )
         _render_all(scene, tmp, cfg, progress)
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

@@ -1,11 +1,14 @@
-"""Atomic file writing for the stages and benchmarks: write a temporary name, then rename.
+"""Atomic file and folder writing for the stages and benchmarks: write a temporary name, then rename.
 
-A killed stage never leaves a half-written PNG, CSV, JSON or plot under its final name.
+A killed stage never leaves a half-written PNG, CSV, JSON, plot or folder under its final name; the
+hidden temporaries a kill leaves carry the writer's process id, so the next run can remove them.
 """
 from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,8 +19,50 @@ import numpy as np
 
 
 def _temporary(path: Path) -> Path:
+    """`.{stem}.{pid}.tmp{suffix}` beside `path` (the suffix kept: writers pick the format from it)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+
+
+def _temporary_dir(path: Path, kind: str = "tmp") -> Path:
+    """`.{name}.{pid}.tmp` (the folder being built) or `.{name}.{pid}.old` (the one it replaces) beside `path`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path.with_name(f".{path.name}.{os.getpid()}.{kind}")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_orphans(path: str | Path) -> list[Path]:
+    """Remove the temporaries of `path` that killed writers left beside it; returns what was removed.
+
+    Matches this module's file and folder temporaries (the folder form is also the earlier checkpoint
+    writer's) and the earlier `.{name}.tmp-{pid}` / `.{name}.old-{pid}` folders of the preprocess stage;
+    a temporary whose process is still running (a concurrent run) is kept.
+    """
+    path = Path(path)
+    stem, suffix, name = (re.escape(part) for part in (path.stem, path.suffix, path.name))
+    pattern = re.compile(rf"\.(?:{stem}\.(\d+)\.tmp{suffix}|{name}\.(\d+)\.(?:tmp|old)|{name}\.(?:tmp|old)-(\d+))")
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    for entry in path.parent.iterdir():
+        match = pattern.fullmatch(entry.name)
+        if match is None or _alive(int(next(pid for pid in match.groups() if pid))):
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
+        removed.append(entry)
+    return removed
 
 
 @contextmanager
@@ -31,6 +76,28 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+@contextmanager
+def atomic_dir(path: str | Path) -> Iterator[Path]:
+    """A new hidden temporary folder beside `path` to build in; when the block succeeds it takes the place of
+    `path` (an older folder there is removed only once the new one is in place), when it raises it is removed."""
+    path = Path(path)
+    tmp = _temporary_dir(path)
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        yield tmp
+        if path.exists():
+            old = _temporary_dir(path, "old")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def write_text(path: str | Path, text: str) -> None:
@@ -47,27 +114,20 @@ def write_png(path: str | Path, image: np.ndarray) -> None:
     path = Path(path)
     if image.dtype != np.uint8:
         image = np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
-    tmp = _temporary(path)
-    try:
+    with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(image[..., ::-1])):
             raise OSError(f"{path}: OpenCV could not write the PNG")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def write_figure(path: str | Path, figure, dpi: float | None = None) -> None:
     """Save a matplotlib figure (format from the suffix) and close it."""
     import matplotlib.pyplot as plt
 
-    path = Path(path)
-    tmp = _temporary(path)
     try:
-        figure.savefig(tmp, dpi=dpi)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            figure.savefig(tmp, dpi=dpi)
     finally:
         plt.close(figure)
-        tmp.unlink(missing_ok=True)
 
 
 def read_png(path: str | Path) -> np.ndarray:

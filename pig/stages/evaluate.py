@@ -26,6 +26,7 @@ from pig.metrics.ssim import ssim
 from pig.metrics.weights import WeightsMissing
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import read_png, write_json, write_text
+from pig.stages._outputs import claim_files
 
 
 @dataclass
@@ -97,10 +98,20 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
 
 
 def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig,
-                   levels: list[int] | None = None) -> list[Path]:
-    """Evaluate the given LODs (default: every LOD rendered under `split_dir`); returns the CSV paths written."""
+                   levels: list[int] | None = None, overwrite: bool = False) -> list[Path]:
+    """Evaluate the given LODs (default: every LOD rendered under `split_dir`); returns the CSV paths written.
+
+    Files of the same names in `output_dir` are replaced only when it is an evaluate output folder, or with
+    `overwrite`."""
     from pig.data.capture import Capture
 
+    rendered = render_levels(split_dir)
+    missing = sorted(set(levels or []) - set(rendered))
+    if missing:
+        raise FileNotFoundError(f"{split_dir}: LOD(s) {missing} were not rendered; found lod{rendered}")
+    levels = levels if levels is not None else rendered
+    claim_files(output_dir, [f"{split}_lod{level}{ext}" for level in levels for ext in (".csv", ".json")], "evaluate",
+                (capture_dir, split_dir), overwrite)
     capture = Capture.load(capture_dir)
     if split not in capture.split:
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
@@ -115,11 +126,7 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     else:
         inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
     written = []
-    rendered = render_levels(split_dir)
-    missing = sorted(set(levels or []) - set(rendered))
-    if missing:
-        raise FileNotFoundError(f"{split_dir}: LOD(s) {missing} were not rendered; found lod{rendered}")
-    for level in levels if levels is not None else rendered:
+    for level in levels:
         level_dir = split_dir / f"lod{level}"
         table, summary, fake, real = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device)
         fid, note = math.nan, fid_note
@@ -152,9 +159,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lod", type=int, nargs="*", default=None, help="levels to evaluate (default: all rendered)")
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
     add_common_arguments(parser)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace files of the same names in an --output folder the evaluate stage did not write")
     args = parser.parse_args(argv)
     cfg = load_section(load_profile(args.profile), "evaluate", EvaluateConfig)
-    evaluate_split(args.capture, args.renders, args.split, args.output, cfg, args.lod)
+    evaluate_split(args.capture, args.renders, args.split, args.output, cfg, args.lod, args.overwrite)
     return 0
 
 

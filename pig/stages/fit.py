@@ -35,8 +35,10 @@ from pig.metrics.psnr import psnr
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_figure, write_text
+from pig.stages._outputs import claim_files
 
 LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr"]
+OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
 
 
 @dataclass
@@ -148,8 +150,11 @@ class HeldOut:
 
 def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", variant: str = "pig", device: str = "cpu",
         on_iteration: Callable[[int], None] | None = None,
-        phase: Callable[[str], AbstractContextManager] | None = None) -> Path:
+        phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False) -> Path:
     """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
+
+    Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
+    or with `overwrite`.
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
     `phase(name)` wraps each part of an iteration ("sample", "model", "render", "loss", "backward",
@@ -158,13 +163,14 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
     threads = torch.get_num_threads()
     try:
         return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, resolve_device(device, "--device"), on_iteration,
-                    phase or (lambda name: nullcontext()))
+                    phase or (lambda name: nullcontext()), overwrite)
     finally:
         torch.set_num_threads(threads)
 
 
 def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, device: torch.device,
-         on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager]) -> Path:
+         on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
+         overwrite: bool) -> Path:
     profile = load_profile(profile_name)
     overrides = variant_overrides(profile, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -177,7 +183,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
     raster = load_section(profile, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
-    output_dir.mkdir(parents=True, exist_ok=True)
+    claim_files(output_dir, OUTPUT_FILES, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"
     log_path = output_dir / "train_log.csv"
@@ -273,8 +279,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variant", default="pig", help="method variant from the profile's `variants` section")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
     add_common_arguments(parser)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace avatar.pt, checkpoint.pt, train_log.* in an --output folder the fit stage did not write")
     args = parser.parse_args(argv)
-    path = fit(args.capture, args.output, args.profile, args.variant, args.device)
+    path = fit(args.capture, args.output, args.profile, args.variant, args.device, overwrite=args.overwrite)
     print(path)
     return 0
 

@@ -9,8 +9,8 @@ import sys
 import time
 from pathlib import Path
 
-from pig.config import ConfigError, load_profile, load_section
-from pig.data.synthetic import SyntheticConfig, SyntheticError, generate_capture
+from pig.config import load_profile, load_section
+from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.stages._cli import add_common_arguments, run_cli
 
 
@@ -20,7 +20,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path (default: cpu-demo)")
     parser.add_argument("--seed", type=int, default=None, help="override synthetic.seed")
     parser.add_argument("--workers", type=int, default=None, help="override synthetic.workers (render processes)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing non-empty output folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing non-empty output folder that is not an earlier generated capture")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_common_arguments(parser)
     return parser.parse_args(argv)
@@ -29,13 +30,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     overrides = {k: v for k, v in (("seed", args.seed), ("workers", args.workers)) if v is not None}
-    try:
-        cfg = load_section(load_profile(args.profile), "synthetic", SyntheticConfig, overrides)
-        start = time.perf_counter()
-        out = generate_capture(args.output, cfg, overwrite=args.overwrite, progress=not args.quiet)
-    except (ConfigError, SyntheticError) as err:
-        print(f"generate: {err}", file=sys.stderr)
-        return 2
+    cfg = load_section(load_profile(args.profile), "synthetic", SyntheticConfig, overrides)
+    start = time.perf_counter()
+    out = generate_capture(args.output, cfg, overwrite=args.overwrite, progress=not args.quiet)
     print(f"generate: wrote {cfg.cameras} cameras x {cfg.frames} frames ({cfg.width}x{cfg.height}) to {out} "
           f"in {time.perf_counter() - start:.1f} s")
     return 0

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import sys
 import time
@@ -22,14 +21,14 @@ import torch
 from tqdm import tqdm
 
 from pig.body.model import BodyModel, BodyModelError
-from pig.body.params import ParamsError
 from pig.config import REPO_ROOT, ConfigError, load_profile, load_section, load_yaml
 from pig.data.formats import FORMATS, capture_format, open_capture
-from pig.data.projection_check import ProjectionCheckError, Tolerance, View, check_projection
+from pig.data.projection_check import Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._outputs import build_dir, claim_dir
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
 
@@ -79,26 +78,18 @@ def _write_png(path: Path, image: np.ndarray, compression: int) -> None:
         raise CaptureError(f"{path}: OpenCV could not write the PNG (disk full or not writable?)")
 
 
-def _replace_dir(tmp: Path, output: Path) -> None:
-    """Move the finished `tmp` to `output`, replacing an older result only once the new one is complete."""
-    if output.exists():
-        old = output.with_name(f".{output.name}.old-{os.getpid()}")
-        os.replace(output, old)
-        os.replace(tmp, output)
-        shutil.rmtree(old)
-    else:
-        os.replace(tmp, output)
-
-
 def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfig, body_model: str | Path,
                        split_cfg: SplitConfig, subject: str, split_source: str = "split",
-                       progress: bool = True) -> dict:
-    """Write the preprocessed capture of `raw` to `output` (atomically) and return its report."""
+                       progress: bool = True, overwrite: bool = False, inputs: tuple[Path, ...] = ()) -> dict:
+    """Write the preprocessed capture of `raw` to `output` (atomically) and return its report.
+
+    `output` may replace only an earlier preprocessed capture unless `overwrite`; it never overlaps the raw
+    capture, the body model or the other `inputs`."""
     start = time.perf_counter()
+    output = claim_dir(output, "preprocess", (raw.source, body_model, *inputs), overwrite)
     background = np.round(np.clip(np.asarray(cfg.background, dtype=np.float64), 0, 1) * 255).astype(np.uint8)
     if background.shape != (3,):
         raise ConfigError(f"preprocess.background must be 3 numbers (RGB in [0, 1]), found {cfg.background}")
-    output = Path(output)
     body_model = Path(body_model)
     cameras = list(raw.cameras)
     split = make_split(cameras, raw.frames, split_cfg, subject, split_source)
@@ -121,10 +112,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
                       torch.from_numpy(sel.expression), torch.from_numpy(sel.transl)).vertices.numpy()
     vertices = dict(zip(check_ids, posed))
 
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
+    with build_dir(output, "preprocess") as tmp:
         for cam in cameras:
             (tmp / "images" / cam).mkdir(parents=True)
             (tmp / "masks" / cam).mkdir(parents=True)
@@ -187,10 +175,6 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
             "seconds_check": round(time.perf_counter() - check_start, 3),
         }
         (tmp / "report.json").write_text(json.dumps(report, indent=1))
-        _replace_dir(tmp, output)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return report
 
 
@@ -218,26 +202,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--subject", default=None, help="subject name for per-subject split rules (default: input folder name)")
     parser.add_argument("--body-model", default=None, type=Path,
                         help="SMPL-X model npz (default: the dataset's body_model, else body_model.npz in --input)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing --output folder that is not an earlier preprocessed capture")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_common_arguments(parser)
     args = parser.parse_args(argv)
-    try:
-        profile = load_profile(args.profile)
-        dataset = _dataset(args.dataset)
-        per_dataset = ((profile.get("preprocess") or {}).get("datasets") or {}).get(dataset.get("name"))
-        cfg = load_section(profile, "preprocess", PreprocessConfig, overrides=per_dataset)
-        split_cfg = load_section(dataset, "split", SplitConfig)
-        split_source = f"{dataset.get('_path', 'default split')}: section 'split'"
-        fmt = args.format or dataset.get("format") or "thuman4"
-        capture_format(fmt).required_files(args.input)  # a missing root says where the data goes, before anything else
-        body_model = resolve_body_model(args.body_model or dataset.get("body_model"), args.input)
-        options = {"body_model": body_model} if capture_format(fmt).needs_body_model else {}
-        raw = open_capture(fmt, args.input, **options)
-        report = preprocess_capture(raw, args.output, cfg, body_model, split_cfg, args.subject or args.input.name,
-                                    split_source, progress=not args.no_progress)
-    except (CaptureError, ConfigError, ParamsError, BodyModelError, ProjectionCheckError) as err:
-        print(f"preprocess: error: {err}", file=sys.stderr)
-        return 1
+    profile = load_profile(args.profile)
+    dataset = _dataset(args.dataset)
+    per_dataset = ((profile.get("preprocess") or {}).get("datasets") or {}).get(dataset.get("name"))
+    cfg = load_section(profile, "preprocess", PreprocessConfig, overrides=per_dataset)
+    split_cfg = load_section(dataset, "split", SplitConfig)
+    split_source = f"{dataset.get('_path', 'default split')}: section 'split'"
+    fmt = args.format or dataset.get("format") or "thuman4"
+    capture_format(fmt).required_files(args.input)  # a missing root says where the data goes, before anything else
+    body_model = resolve_body_model(args.body_model or dataset.get("body_model"), args.input)
+    options = {"body_model": body_model} if capture_format(fmt).needs_body_model else {}
+    raw = open_capture(fmt, args.input, **options)
+    report = preprocess_capture(raw, args.output, cfg, body_model, split_cfg, args.subject or args.input.name,
+                                split_source, progress=not args.no_progress, overwrite=args.overwrite,
+                                inputs=(args.input,))
     worst = min(report["projection_check"]["cameras"].items(), key=lambda item: item[1]["iou"])
     print(f"preprocess: wrote {report['images']} images of {report['cameras']} cameras to {args.output} "
           f"in {report['seconds']:.1f} s; lowest projection IoU {worst[1]['iou']:.3f} ({worst[0]})")

@@ -7,9 +7,7 @@ full per-frame work (field, decoders, transport, rasterization) per LOD for the 
 from __future__ import annotations
 
 import argparse
-import os
 import platform
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +22,7 @@ from pig.field.precondition import PreconditionedTensor
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_json, write_png
+from pig.stages._outputs import build_dir, claim_dir
 from pig.stages.evaluate import EvaluateConfig, resolve_device
 
 BLACK = (0.0, 0.0, 0.0)  # evaluation background (paper protocol: black, ground truth masked)
@@ -128,10 +127,12 @@ class SplitRenderer:
 
 
 def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, cfg: EvaluateConfig,
-                 rasterizer: RasterizerConfig) -> None:
+                 rasterizer: RasterizerConfig, overwrite: bool = False) -> None:
+    """Write `output`/lod{l}/... atomically; `output` may replace only an earlier render unless `overwrite`."""
     from pig.avatar.checkpoint import load_avatar
     from pig.data.capture import Capture
 
+    output = claim_dir(output, "render", (checkpoint, capture_dir), overwrite)
     capture = Capture.load(capture_dir)
     if split not in capture.split:
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
@@ -140,9 +141,9 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     model = load_avatar(checkpoint, device).eval()
     bake_preconditioning(model)
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
-    tmp = output.with_name(f".{output.name}.{os.getpid()}.tmp")
     levels = range(model.num_levels)
-    with tqdm(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
+    with build_dir(output, "render") as tmp, \
+            tqdm(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
         for lod in levels:
             level_dir = tmp / f"lod{lod}"
             for frame in frames:
@@ -161,9 +162,6 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
                 "width": renderer.groups[0].width,
                 "height": renderer.groups[0].height,
             })
-    if output.exists():
-        shutil.rmtree(output)
-    tmp.rename(output)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -174,11 +172,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output", type=Path, required=True, help="renders/{split} directory to write")
     parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
     add_common_arguments(parser)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing --output folder that is not an earlier render of a split")
     args = parser.parse_args(argv)
     profile = load_profile(args.profile)
     cfg = load_section(profile, "evaluate", EvaluateConfig)
     rasterizer = load_section(profile, "rasterizer", RasterizerConfig)
-    render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer)
+    render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer, args.overwrite)
     return 0
 
 

@@ -19,6 +19,7 @@ import pandas as pd  # noqa: E402
 
 from pig.stages._cli import add_common_arguments, run_cli  # noqa: E402
 from pig.stages._io import write_figure, write_text  # noqa: E402
+from pig.stages._outputs import claim_files  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "fid")
@@ -139,15 +140,26 @@ def to_markdown(table: pd.DataFrame, title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def training_plot(logs: dict[str, list[Path]], path: Path, title: str) -> None:
-    """Held-out PSNR against training wall time, one line per (variant, subject), from train_log.csv."""
+def read_train_log(path: Path) -> pd.DataFrame:
+    """Wall time and held-out PSNR of one train_log.csv, checked: numbers, both columns present."""
+    columns = ["wall_s", "heldout_psnr"]
+    try:
+        log = pd.read_csv(path)
+    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
+        raise ValueError(f"{path}: not a readable train log ({err})") from None
+    if not set(columns) <= set(log.columns):
+        raise ValueError(f"{path}: train log lacks columns {sorted(set(columns) - set(log.columns))}; found {list(log.columns)}")
+    try:
+        return log[columns].apply(pd.to_numeric)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{path}: train log has a non-numeric wall_s or heldout_psnr ({err})") from None
+
+
+def training_plot(logs: dict[str, dict[Path, pd.DataFrame]], path: Path, title: str) -> None:
+    """Held-out PSNR against training wall time, one line per (variant, subject), from `read_train_log`."""
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
     for variant, files in logs.items():
-        for file in files:
-            log = pd.read_csv(file)
-            columns = {"wall_s", "heldout_psnr"}
-            if not columns <= set(log.columns):
-                raise ValueError(f"{file}: train log lacks columns {sorted(columns - set(log.columns))}; found {list(log.columns)}")
+        for file, log in files.items():
             log = log.dropna(subset=["heldout_psnr"])
             ax.plot(log["wall_s"], log["heldout_psnr"], marker="o", markersize=3, label=f"{variant} ({Path(file).parts[-3]})")
     ax.set_xlabel("training wall time [s]")
@@ -159,16 +171,25 @@ def training_plot(logs: dict[str, list[Path]], path: Path, title: str) -> None:
     write_figure(path, fig)
 
 
-def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], variants: list[str], output: Path) -> None:
+def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], variants: list[str], output: Path,
+                overwrite: bool = False) -> None:
+    """Write the tables and the training plot to `output`, after every input has been read and checked; files
+    of the same names are replaced only in a tables output folder, or with `overwrite`."""
     table = read_summaries(summaries)
     main = main_table(table, variants)
     lod = lod_table(table, variants)
-    write_text(output / f"{dataset}.csv", main.to_csv(index=False, float_format="%.6g"))
-    write_text(output / f"{dataset}.md", to_markdown(main, f"{dataset}: novel views and novel poses (finest LOD)"))
-    write_text(output / f"{dataset}_lod.csv", lod.to_csv(index=False, float_format="%.6g"))
-    write_text(output / f"{dataset}_lod.md", to_markdown(lod, f"{dataset}: levels of detail (novel views)"))
-    logs = {v: [p for p in map(Path, train_logs) if p.parent.name == v] for v in variants}
-    training_plot(logs, output / f"{dataset}_training.png", f"{dataset}: held-out PSNR during training")
+    logs = {v: {p: read_train_log(p) for p in map(Path, train_logs) if p.parent.name == v} for v in variants}
+    texts = {
+        f"{dataset}.csv": main.to_csv(index=False, float_format="%.6g"),
+        f"{dataset}.md": to_markdown(main, f"{dataset}: novel views and novel poses (finest LOD)"),
+        f"{dataset}_lod.csv": lod.to_csv(index=False, float_format="%.6g"),
+        f"{dataset}_lod.md": to_markdown(lod, f"{dataset}: levels of detail (novel views)"),
+    }
+    plot = f"{dataset}_training.png"
+    claim_files(output, [*texts, plot], "tables", [*summaries, *train_logs], overwrite)
+    for name, text in texts.items():
+        write_text(output / name, text)
+    training_plot(logs, output / plot, f"{dataset}: held-out PSNR during training")
     print(to_markdown(main, dataset))
     print(to_markdown(lod, f"{dataset} LOD"))
 
@@ -181,8 +202,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variants", nargs="+", required=True, help="row order of the tables")
     parser.add_argument("--output", type=Path, required=True, help="tables directory (results/tables)")
     add_common_arguments(parser)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace files of the same names in an --output folder the tables stage did not write")
     args = parser.parse_args(argv)
-    make_tables(args.dataset, args.summaries, args.train_logs, args.variants, args.output)
+    make_tables(args.dataset, args.summaries, args.train_logs, args.variants, args.output, args.overwrite)
     return 0
 
 

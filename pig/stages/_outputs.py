@@ -1,0 +1,107 @@
+"""Where a stage may write: never over its inputs, never over files it did not write itself.
+
+Every folder a stage writes gets a hidden marker file naming the stage. A stage replaces only what lies
+in a folder marked with its own name (or in a new or empty folder); anything else needs `--overwrite`.
+An output that is, contains or lies inside an input, or that is an existing file, is always refused.
+Checks run before anything is written.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from pig.stages._io import atomic_dir, remove_orphans, write_json
+
+MARKER = ".pig-stage"
+
+
+class OutputError(ValueError):
+    """The stage refuses to write to this output location."""
+
+
+def marked_stage(folder: Path) -> str | None:
+    """The stage named by `folder`'s marker; None without a readable one."""
+    try:
+        stage = json.loads((folder / MARKER).read_text())["stage"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return stage if isinstance(stage, str) else None
+
+
+def check_apart(output: Path, inputs: Iterable[str | Path]) -> None:
+    """Refuse an output that is one of the inputs, contains one, or lies inside one."""
+    resolved = output.resolve()
+    for given in inputs:
+        path = Path(given).resolve()
+        if resolved == path:
+            raise OutputError(f"{output}: the output is the input {given}; choose another output folder")
+        if resolved in path.parents:
+            raise OutputError(f"{output}: the output contains the input {given}; choose another output folder")
+        if path in resolved.parents:
+            raise OutputError(f"{output}: the output lies inside the input {given}; choose a folder outside it")
+
+
+def check_folder_path(folder: Path) -> None:
+    """Refuse a folder path that is, or lies under, an existing file."""
+    for path in (folder, *folder.parents):
+        if path.is_dir():
+            return
+        if path.exists():
+            where = "is an existing file" if path == folder else f"lies under the file {path}"
+            raise OutputError(f"{folder}: the output folder {where}; nothing was written, choose a folder path")
+
+
+def _foreign(folder: Path, stage: str, files: list[str]) -> str:
+    owner = marked_stage(folder)
+    if owner is not None:
+        return (f"{folder}: holds the {owner} stage's output, not the {stage} stage's; pass --overwrite to replace "
+                "it, or choose another output folder")
+    shown = ", ".join(files[:3]) + (", ..." if len(files) > 3 else "")
+    return (f"{folder}: holds files the {stage} stage did not write ({shown}); pass --overwrite to replace them, "
+            "or choose another output folder")
+
+
+def claim_dir(output: str | Path, stage: str, inputs: Iterable[str | Path] = (), overwrite: bool = False) -> Path:
+    """Check that `stage` may replace the folder `output` as a whole (see `build_dir`); writes nothing."""
+    output = Path(output)
+    check_folder_path(output)
+    check_apart(output, inputs)
+    if output.is_dir() and not overwrite and marked_stage(output) != stage:
+        files = sorted(p.name for p in output.iterdir())
+        if files:
+            raise OutputError(_foreign(output, stage, files))
+    return output
+
+
+@contextmanager
+def build_dir(output: Path, stage: str) -> Iterator[Path]:
+    """A temporary folder that replaces `output` when the block succeeds (call `claim_dir` first).
+
+    Removes the temporaries killed runs left beside `output` first and marks the new folder as `stage`'s."""
+    remove_orphans(output)
+    with atomic_dir(output) as tmp:
+        yield tmp
+        write_json(tmp / MARKER, {"stage": stage})
+
+
+def claim_files(folder: str | Path, names: Iterable[str], stage: str, inputs: Iterable[str | Path] = (),
+                overwrite: bool = False) -> Path:
+    """Check that `stage` may write the files `names` into `folder`, whose other files it leaves alone; then
+    create and mark the folder and remove the temporaries killed runs left of those files."""
+    folder = Path(folder)
+    names = list(names)
+    check_folder_path(folder)
+    check_apart(folder, inputs)
+    owner = marked_stage(folder) if folder.is_dir() else None
+    if folder.is_dir() and not overwrite and owner != stage:
+        present = [name for name in names if (folder / name).exists()]
+        if present or owner is not None:
+            raise OutputError(_foreign(folder, stage, present))
+    folder.mkdir(parents=True, exist_ok=True)
+    if owner != stage:
+        write_json(folder / MARKER, {"stage": stage})
+    for name in names:
+        remove_orphans(folder / name)
+    return folder
