@@ -123,7 +123,9 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     rendered = render_levels(split_dir)
     missing = sorted(set(levels or []) - set(rendered))
     if missing:
-        raise FileNotFoundError(f"{split_dir}: LOD(s) {missing} were not rendered; found lod{rendered}")
+        raise FileNotFoundError(f"{split_dir}: LOD(s) {missing} were not rendered; found lod{rendered}: the avatar "
+                                "rendered has fewer levels; was `avatar.levels` (or the variant's override) changed "
+                                "after its fit? Rerun fit and render, e.g. `snakemake -R fit_avatar`")
     for level in levels if levels is not None else rendered:
         level_dir = split_dir / f"lod{level}"
         table, summary, fake, real = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device)
