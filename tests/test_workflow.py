@@ -4,7 +4,7 @@ Most tests work on a fake THuman4 subject whose outputs all exist and are record
 (`--touch`), in a folder whose path, raw data, profile, dataset YAML and subject name hold spaces, and
 assert which jobs a dry run schedules after one change: a profile value, the dataset split, a raw image
 or mask, `avatar.levels`. Snakemake runs in a forked child of the test process, which has already
-imported what the workflow imports at DAG time (torch among it): a dry run takes ~2 s instead of ~8 s.
+imported what the workflow imports at DAG time (torch among them): a dry run takes ~2 s instead of ~8 s.
 """
 from __future__ import annotations
 
