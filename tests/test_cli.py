@@ -78,7 +78,7 @@ def _entry_points(tmp: Path) -> dict[str, tuple[list[str], str]]:
         "pig.stages.render": (["--checkpoint", str(tmp / "avatar.pt"), "--capture", str(missing), "--split", "novel_view",
                                "--output", str(tmp / "renders")], str(missing)),
         "pig.stages.evaluate": (["--capture", str(missing), "--renders", str(tmp / "renders"), "--split", "novel_view",
-                                 "--output", str(tmp / "metrics")], str(missing)),
+                                 "--output", str(tmp / "metrics")], str(tmp / "renders")),
         "pig.stages.tables": (["--dataset", "x", "--summaries", str(missing / "s.json"), "--variants", "pig",
                                "--output", str(tmp / "tables")], str(missing / "s.json")),
         "pig.stages.preprocess": (["--input", str(missing), "--output", str(tmp / "capture")], str(missing)),
@@ -115,7 +115,7 @@ def test_traceback_flag_of_an_entry_point_shows_the_exception(tmp_path, monkeypa
     monkeypatch.setattr(sys, "argv", [module, *argv, "--traceback"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        with pytest.raises(ValueError, match=named):  # CaptureError and the tables' ValueError alike
+        with pytest.raises((ValueError, OSError), match=named):  # CaptureError, missing renders, the tables' ValueError
             runpy.run_module(module, run_name="__main__", alter_sys=True)
 
 

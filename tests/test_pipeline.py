@@ -90,22 +90,25 @@ def test_tables_reject_missing_variant(tmp_path):
 
 @pytest.mark.slow
 def test_workflow_end_to_end(tmp_path):
-    """`snakemake` on the test profile from an empty working directory to the synthetic tables."""
+    """`snakemake` on the test profile from an empty working directory to the synthetic tables; the working
+    directory and the profile's path hold spaces, which every rule's command must quote."""
     if shutil.which("snakemake") is None:
         pytest.skip("snakemake is not on PATH")
-    (tmp_path / "config").symlink_to(REPO / "config")
+    work = tmp_path / "work dir"
+    work.mkdir()
+    (work / "config").symlink_to(REPO / "config")
     # The test profile with a longer fit: its 40 iterations are sized for the fit tests, not for a
     # trained avatar; 200 take ~20 s on two quiet cores.
     profile = yaml.safe_load((REPO / "config" / "profiles" / "test.yaml").read_text())
     profile["fit"].update(iterations=200, eval_every=100)
-    (tmp_path / "pipeline.yaml").write_text(yaml.safe_dump(profile))
+    (work / "pipeline profile.yaml").write_text(yaml.safe_dump(profile))
     command = ["snakemake", "results/tables/synthetic.csv", "--snakefile", str(REPO / "Snakefile"),
-               "--directory", str(tmp_path), "--cores", "2", "--config", f"profile={tmp_path / 'pipeline.yaml'}"]
+               "--directory", str(work), "--cores", "2", "--config", f"profile={work / 'pipeline profile.yaml'}"]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600)
-    logs = "\n".join(f"== {p}\n{p.read_text()[-2000:]}" for p in sorted(tmp_path.glob("results/**/logs/*.log")))
+    logs = "\n".join(f"== {p}\n{p.read_text()[-2000:]}" for p in sorted(work.glob("results/**/logs/*.log")))
     assert done.returncode == 0, f"{done.stdout[-3000:]}\n{done.stderr[-5000:]}\n{logs}"
 
-    tables = tmp_path / "results" / "tables"
+    tables = work / "results" / "tables"
     main = pd.read_csv(tables / "synthetic.csv").set_index("variant")
     assert {"pig", BLANK_ROW} <= set(main.index)
     assert set(METRIC_COLUMNS + ["splats", "notes"]) <= set(main.columns)
@@ -120,7 +123,7 @@ def test_workflow_end_to_end(tmp_path):
     for name in ("synthetic.md", "synthetic_lod.md", "synthetic_training.png"):
         assert (tables / name).stat().st_size > 0
     # Renders: one PNG and one EXR (alpha, depth) per camera and frame of each split and LOD.
-    renders = tmp_path / "results" / "synthetic" / "subject00" / "pig" / "renders"
+    renders = work / "results" / "synthetic" / "subject00" / "pig" / "renders"
     for split in ("novel_view", "novel_pose"):
         pngs = sorted(renders.glob(f"{split}/lod0/*/*.png"))
         assert pngs and len(pngs) == len(list(renders.glob(f"{split}/lod0/*/*.exr")))

@@ -96,16 +96,15 @@ def test_subjects_accessor_keeps_each_tables_subjects_apart(tmp_path):
     assert subjects("dna", "ablation") == ["0102"] and subjects("dna", "noise") == ["0012"]
     assert subjects("thuman4") == ["subject00", "subject01", "subject02"] and subjects("thuman4", "ablation") == []
 
+    # The workflow reads dataset YAML as the stages do (pig.config.load_yaml): unquoted ids stay strings,
+    # where plain YAML 1.1 would read 0012 as the octal 10 and 0166_04 as 7556.
     unquoted = tmp_path / "dna.yaml"
-    unquoted.write_text("subjects: [0165_08]\nnoise_subjects: [0012]\n")
+    unquoted.write_text("subjects: [0166_04]\nnoise_subjects: [0012]\nablation_subjects: [12]\n")
     subjects = _workflow_helpers({"dna": unquoted})["subjects"]
-    with pytest.raises(ValueError, match=r"dna\.yaml: `noise_subjects` must be a list of subject names as quoted "
-                                         r"strings \(YAML reads an unquoted 0102 as the number 66\), found \[10\]"):
-        subjects("dna", "noise")
-    assert subjects("dna") == ["0165_08"]  # not a YAML number: 8 is no octal digit
-    unquoted.write_text("subjects: [0166_04]\n")
-    with pytest.raises(ValueError, match=r"found \[7556\]"):
-        subjects("dna")
+    assert subjects("dna") == ["0166_04"] and subjects("dna", "noise") == ["0012"]
+    with pytest.raises(ValueError, match=r"dna\.yaml: `ablation_subjects` must be a non-empty list of subject names, "
+                                         r"found \[12\]"):
+        subjects("dna", "ablation")
 
 
 @pytest.mark.slow

@@ -108,7 +108,9 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     rendered = render_levels(split_dir)
     missing = sorted(set(levels or []) - set(rendered))
     if missing:
-        raise FileNotFoundError(f"{split_dir}: LOD(s) {missing} were not rendered; found lod{rendered}")
+        raise FileNotFoundError(f"{split_dir}: LOD(s) {missing} were not rendered; found lod{rendered}: the avatar "
+                                "rendered has fewer levels; was `avatar.levels` (or the variant's override) changed "
+                                "after its fit? Rerun fit and render, e.g. `snakemake -R fit_avatar`")
     levels = levels if levels is not None else rendered
     claim_files(output_dir, [f"{split}_lod{level}{ext}" for level in levels for ext in (".csv", ".json")], "evaluate",
                 (capture_dir, split_dir), overwrite)

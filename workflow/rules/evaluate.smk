@@ -1,16 +1,15 @@
 # Render the held-out splits at every level of detail, score them, and build the paper's tables.
 from pig.avatar.config import AvatarConfig
 from pig.avatar.variants import variant_overrides
-from pig.config import load_profile, load_section
+from pig.config import load_section
 
 SPLITS = ["novel_view", "novel_pose"]
 
 
 def lod_levels(variant):
     """LOD indices 0..L-1 of a variant: the profile's `avatar.levels` after the variant's overrides."""
-    profile = load_profile(PROFILE)
-    overrides = variant_overrides(profile, variant).get("avatar")
-    return list(range(load_section(profile, "avatar", AvatarConfig, overrides).levels))
+    overrides = variant_overrides(profile(), variant).get("avatar")
+    return list(range(load_section(profile(), "avatar", AvatarConfig, overrides).levels))
 
 
 rule render_split:
@@ -22,6 +21,8 @@ rule render_split:
     params:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
         profile=PROFILE,
+        # Not used by the command: a change reruns the rule (params trigger).
+        settings=profile_settings("evaluate", "rasterizer"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/render_{split}.log",
     benchmark:
@@ -33,8 +34,8 @@ rule render_split:
         mem_mb=8000,
         runtime=60,
     shell:
-        "python -m pig.stages.render --checkpoint {input.checkpoint} --capture {params.capture} "
-        "--split {wildcards.split} --output {output} --profile {params.profile} > {log} 2>&1"
+        "python -m pig.stages.render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
+        "--split {wildcards.split:q} --output {output:q} --profile {params.profile:q} > {log:q} 2>&1"
 
 
 rule evaluate:
@@ -48,6 +49,8 @@ rule evaluate:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
         output=lambda wildcards, output: str(Path(output.csv).parent),
         profile=PROFILE,
+        # Not used by the command: a change reruns the rule (params trigger).
+        settings=profile_settings("evaluate"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}_lod{lod}.log",
     benchmark:
@@ -60,8 +63,9 @@ rule evaluate:
         mem_mb=8000,
         runtime=60,
     shell:
-        "python -m pig.stages.evaluate --capture {params.capture} --renders {input.renders} --split {wildcards.split} "
-        "--lod {wildcards.lod} --output {params.output} --profile {params.profile} > {log} 2>&1"
+        "python -m pig.stages.evaluate --capture {params.capture:q} --renders {input.renders:q} "
+        "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} --profile {params.profile:q} "
+        "> {log:q} 2>&1"
 
 
 rule make_tables:
@@ -96,5 +100,5 @@ rule make_tables:
         mem_mb=2000,
         runtime=10,
     shell:
-        "python -m pig.stages.tables --dataset {wildcards.dataset} --summaries {input.summaries} "
-        "--train-logs {input.train_logs} --variants {params.variants} --output {params.output} > {log} 2>&1"
+        "python -m pig.stages.tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
+        "--train-logs {input.train_logs:q} --variants {params.variants:q} --output {params.output:q} > {log:q} 2>&1"

@@ -1,5 +1,6 @@
 # Fit one avatar per (dataset, subject, variant) on the preprocessed capture's train split.
-# A killed fit resumes from {variant}/checkpoint.pt when the rule runs again.
+# A killed fit resumes from {variant}/checkpoint.pt when the rule runs again. Reruns when the profile sections the
+# fit reads or the variant's overrides change (params.settings).
 
 
 rule fit_avatar:
@@ -12,6 +13,9 @@ rule fit_avatar:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
         output=lambda wildcards, output: str(Path(output.checkpoint).parent),
         profile=PROFILE,
+        # Not used by the command: a change reruns the rule (params trigger).
+        settings=lambda wildcards: profile_settings(
+            "avatar", "fit", "field", "precond", "rasterizer", variant=wildcards.variant),
     log:
         "results/{dataset}/{subject}/{variant}/logs/fit.log",
     benchmark:
@@ -21,5 +25,5 @@ rule fit_avatar:
         mem_mb=16000,
         runtime=24 * 60,
     shell:
-        "python -m pig.stages.fit --capture {params.capture} --output {params.output} "
-        "--profile {params.profile} --variant {wildcards.variant} > {log} 2>&1"
+        "python -m pig.stages.fit --capture {params.capture:q} --output {params.output:q} "
+        "--profile {params.profile:q} --variant {wildcards.variant:q} > {log:q} 2>&1"

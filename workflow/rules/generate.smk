@@ -1,11 +1,11 @@
 # Generate the built-in synthetic subject (THuman4 layout + ground-truth meshes) under the synthetic
 # dataset's root; its sizes come from the profile's `synthetic` section (pig.data.synthetic).
-from pig.config import load_profile, load_section
+from pig.config import load_section
 from pig.data.synthetic import SyntheticConfig
 
 
 def synthetic_config():
-    return load_section(load_profile(PROFILE), "synthetic", SyntheticConfig)
+    return load_section(profile(), "synthetic", SyntheticConfig)
 
 
 rule generate_capture:
@@ -26,5 +26,5 @@ rule generate_capture:
         mem_mb=1500 + 800 * synthetic_config().workers,
         runtime=10 + synthetic_config().cameras * synthetic_config().frames // 100,
     shell:
-        "python -m pig.stages.generate --output {output} --profile {params.profile} --workers {threads} "
-        "--overwrite --quiet > {log} 2>&1"
+        "python -m pig.stages.generate --output {output:q} --profile {params.profile:q} --workers {threads} "
+        "--overwrite --quiet > {log:q} 2>&1"

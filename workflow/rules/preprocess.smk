@@ -1,6 +1,7 @@
 # Preprocess a raw subject (THuman4 layout, DNA-Rendering, or the generated synthetic capture) into
 # results/{dataset}/{subject}/capture/ (sentinel report.json): undistorted, masked, resized frames,
-# cameras, SMPL-X parameters, splits, projection check.
+# cameras, SMPL-X parameters, splits, projection check. Reruns when the raw files (params.raw: sizes and mtimes),
+# the dataset YAML or the profile's `preprocess` section change.
 from snakemake.exceptions import WorkflowError
 
 from pig.data.formats import capture_format
@@ -13,7 +14,9 @@ def preprocess_inputs(wildcards):
     source = config["datasets"][wildcards.dataset]
     root = Path(raw_root(wildcards.dataset, wildcards.subject))
     if dataset.get("generated"):
-        return {"raw": str(root)}  # written by the generate rule
+        # Written by the generate rule. A changed file under it reruns preprocess through params.raw, which
+        # Snakemake evaluates for a job downstream of a rerun generate only when it runs, after the rewrite.
+        return {"raw": str(root)}
     try:
         files = capture_format(dataset["format"]).required_files(root)
     except CaptureError as err:
@@ -31,7 +34,31 @@ def preprocess_inputs(wildcards):
 
 
 def body_model_option(wildcards, input):
-    return f"--body-model {input.body_model}" if "body_model" in input.keys() else ""
+    return ["--body-model", input.body_model] if "body_model" in input.keys() else []
+
+
+# The keys of a dataset YAML that pig.stages.preprocess reads (subject lists and root are not among them).
+PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split")
+
+
+def preprocess_settings(wildcards):
+    """Hash of what the stage reads besides the raw files: the profile's `preprocess` section with this dataset's
+    entry of `preprocess.datasets`, and the dataset YAML's PREPROCESS_DATASET_KEYS."""
+    dataset = dataset_config(wildcards.dataset)
+    section = dict(profile().get("preprocess") or {})
+    per_dataset = (section.pop("datasets", None) or {}).get(dataset.get("name"))
+    return settings_hash({"preprocess": section, "dataset_overrides": per_dataset,
+                          "dataset": {key: dataset.get(key) for key in PREPROCESS_DATASET_KEYS}})
+
+
+def raw_manifest(wildcards):
+    """Hash of the sizes and mtimes of the subject's raw folder (images, masks, calibration, parameters), of the
+    files its format requires and of the body model."""
+    paths = [raw_root(wildcards.dataset, wildcards.subject)]
+    if not dataset_config(wildcards.dataset).get("generated"):
+        inputs = preprocess_inputs(wildcards)
+        paths += [*inputs["raw"], inputs["body_model"]]
+    return file_manifest(paths)
 
 
 rule preprocess_capture:
@@ -46,6 +73,9 @@ rule preprocess_capture:
         dataset=lambda wildcards: config["datasets"][wildcards.dataset],
         body_model=body_model_option,
         profile=PROFILE,
+        # Not used by the command: a change of either reruns the rule (params trigger).
+        settings=preprocess_settings,
+        raw=raw_manifest,
     log:
         "results/{dataset}/{subject}/logs/preprocess.log",
     benchmark:
@@ -56,6 +86,6 @@ rule preprocess_capture:
         mem_mb=4000,
         runtime=60,
     shell:
-        "python -m pig.stages.preprocess --format {params.format} --input {params.root} --output {params.output} "
-        "--profile {params.profile} --dataset {params.dataset} --subject {wildcards.subject} {params.body_model} "
-        "> {log} 2>&1"
+        "python -m pig.stages.preprocess --format {params.format:q} --input {params.root:q} --output {params.output:q} "
+        "--profile {params.profile:q} --dataset {params.dataset:q} --subject {wildcards.subject:q} "
+        "{params.body_model:q} > {log:q} 2>&1"
