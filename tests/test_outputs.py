@@ -16,6 +16,7 @@ from thuman4_fixture import write_thuman4
 
 from pig.data.raw import CaptureError
 from pig.stages import evaluate, fit, generate, preprocess, render, tables
+from pig.stages._cli import run_cli
 
 MARKER = ".pig-stage"  # pig.stages._outputs.MARKER; spelt out so that these tests also run on code without it
 
@@ -52,7 +53,7 @@ def raw(tmp_path_factory) -> Path:
 
 
 def _preprocess(raw: Path, out: Path, *extra: str) -> int:
-    return preprocess.main(["--input", str(raw), "--output", str(out), "--profile", "test", "--no-progress", *extra])
+    return run_cli(preprocess.main, ["--input", str(raw), "--output", str(out), "--profile", "test", "--no-progress", *extra])
 
 
 # -- preprocess: the raw capture, a data root and unrelated files are safe ------------------------------------
@@ -128,11 +129,11 @@ def _variant(tmp_path: Path) -> tuple[Path, Path, dict[str, bytes]]:
 def test_render_pointed_at_a_variant_folder_keeps_avatar_pt(tmp_path, capsys):
     variant, capture, before = _variant(tmp_path)
     args = ["--capture", str(capture), "--split", "novel_view", "--profile", "test"]
-    assert render.main(["--checkpoint", str(variant / "avatar.pt"), "--output", str(variant), *args, "--overwrite"]) == 1
+    assert run_cli(render.main, ["--checkpoint", str(variant / "avatar.pt"), "--output", str(variant), *args, "--overwrite"]) == 1
     assert (f"render: error: {variant}: the output contains the input {variant / 'avatar.pt'}; "
             "choose another output folder") in capsys.readouterr().err
     other = tmp_path / "elsewhere.pt"
-    assert render.main(["--checkpoint", str(other), "--output", str(variant), *args]) == 1
+    assert run_cli(render.main, ["--checkpoint", str(other), "--output", str(variant), *args]) == 1
     assert (f"render: error: {variant}: holds files the render stage did not write (avatar.pt, renders, "
             "train_log.csv)") in capsys.readouterr().err
     assert _snapshot(tmp_path) == before and not other.exists()
@@ -152,12 +153,12 @@ def test_evaluate_never_writes_into_the_renders_or_over_foreign_files(tmp_path, 
     variant, capture, before = _variant(tmp_path)
     renders = variant / "renders" / "novel_view"
     args = ["--capture", str(capture), "--renders", str(renders), "--split", "novel_view", "--profile", "test"]
-    assert evaluate.main([*args, "--output", str(renders)]) == 1
+    assert run_cli(evaluate.main, [*args, "--output", str(renders)]) == 1
     assert f"evaluate: error: {renders}: the output is the input {renders}" in capsys.readouterr().err
     metrics = variant / "metrics"
     metrics.mkdir()
     (metrics / "novel_view_lod0.json").write_text("{}")
-    assert evaluate.main([*args, "--output", str(metrics)]) == 1
+    assert run_cli(evaluate.main, [*args, "--output", str(metrics)]) == 1
     assert (f"evaluate: error: {metrics}: holds files the evaluate stage did not write (novel_view_lod0.json)"
             in capsys.readouterr().err)
     assert (metrics / "novel_view_lod0.json").read_text() == "{}" and _hidden(metrics) == []
@@ -167,10 +168,10 @@ def test_evaluate_never_writes_into_the_renders_or_over_foreign_files(tmp_path, 
 def test_fit_keeps_files_it_did_not_write(tmp_path, capsys):
     variant, capture, before = _variant(tmp_path)
     args = ["--capture", str(capture), "--profile", "test", "--device", "cpu"]
-    assert fit.main([*args, "--output", str(variant)]) == 1
+    assert run_cli(fit.main, [*args, "--output", str(variant)]) == 1
     assert (f"fit: error: {variant}: holds files the fit stage did not write (avatar.pt, train_log.csv); "
             "pass --overwrite") in capsys.readouterr().err
-    assert fit.main([*args, "--output", str(capture), "--overwrite"]) == 1
+    assert run_cli(fit.main, [*args, "--output", str(capture), "--overwrite"]) == 1
     assert f"fit: error: {capture}: the output is the input {capture}" in capsys.readouterr().err
     assert _snapshot(tmp_path) == before
 
@@ -195,7 +196,7 @@ def test_fit_removes_the_temporaries_of_a_killed_fit(tmp_path, dead_pid, live_pi
 def _summary(root: Path, variant: str, split: str, psnr: float) -> Path:
     path = root / "synthetic" / "s0" / variant / "metrics" / f"{split}_lod0.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"split": split, "lod": 0, "psnr": psnr, "ssim": 0.9, "lpips": math.nan, "fid": math.nan,
+    path.write_text(json.dumps({"split": split, "lod": 0, "psnr": psnr, "ssim": 0.9, "lpips": math.nan, "lpips_net": "alex", "fid": math.nan,
                                 "psnr_blank": 10.0, "ssim_blank": 0.5, "splats": 100, "model_mb": 1.0, "fps": 50.0,
                                 "device": "cpu"}))
     return path
@@ -231,13 +232,13 @@ def test_tables_keep_a_foreign_file_of_the_same_name(tmp_path, capsys):
     out.mkdir()
     (out / "synthetic.csv").write_text("my own table")
     argv = ["--dataset", "synthetic", "--summaries", str(summary), "--variants", "pig", "--output", str(out)]
-    assert tables.main(argv) == 1
+    assert run_cli(tables.main, argv) == 1
     assert (f"tables: error: {out}: holds files the tables stage did not write (synthetic.csv)"
             in capsys.readouterr().err)
     assert sorted(p.name for p in out.iterdir()) == ["synthetic.csv"]
-    assert tables.main([*argv, "--overwrite"]) == 0
+    assert run_cli(tables.main, [*argv, "--overwrite"]) == 0
     assert pd.read_csv(out / "synthetic.csv")["variant"].iloc[0] == "pig"
-    assert tables.main(argv) == 0  # a rerun over its own output
+    assert run_cli(tables.main, argv) == 0  # a rerun over its own output
 
 
 # -- generate: reruns, foreign folders, orphans ------------------------------------------------------------------
@@ -252,7 +253,7 @@ def test_generate_replaces_its_own_capture_without_overwrite_and_removes_orphans
     (out / "calibration.json").write_text("stale")
     for name in (f".subject00.{dead_pid}.tmp", f".subject00.{live_pid}.tmp"):
         (out.parent / name / "images").mkdir(parents=True)
-    assert generate.main(["--output", str(out), "--profile", str(profile), "--quiet"]) == 0
+    assert run_cli(generate.main, ["--output", str(out), "--profile", str(profile), "--quiet"]) == 0
     assert json.loads((out / "calibration.json").read_text())["cam00"]["imgSize"] == [16, 16]
     assert sorted(p.name for p in out.parent.iterdir()) == [f".subject00.{live_pid}.tmp", "subject00"]
 

@@ -19,6 +19,7 @@ from pig.data.projection_check import View, overlap_counts, silhouette
 from pig.data.raw import CaptureError
 from pig.data.splits import SplitConfig, make_split
 from pig.data.thuman4 import Thuman4Capture
+from pig.stages._cli import run_cli
 from pig.stages.preprocess import PreprocessConfig, main, preprocess_capture
 
 REPO = Path(__file__).resolve().parent.parent
@@ -26,7 +27,7 @@ HOLD_OUT_LAST = SplitConfig(novel_view_cameras=["cam01"], novel_pose_frames=[1, 
 
 
 def _run(root: Path, out: Path, *extra: str) -> int:
-    return main(["--input", str(root), "--output", str(out), "--profile", "test", "--no-progress", *extra])
+    return run_cli(main, ["--input", str(root), "--output", str(out), "--profile", "test", "--no-progress", *extra])
 
 
 def _leftovers(folder: Path) -> list[str]:
@@ -242,7 +243,7 @@ def test_bad_input_exits_with_a_message_and_writes_nothing(tmp_path, capsys, cas
     make_args, message = BAD_RUNS[case]
     extra = make_args(tmp_path, root)
     args = ["--input", str(root), "--output", str(tmp_path / "out"), "--profile", "test", "--no-progress", *extra]
-    assert main(args) == 1
+    assert run_cli(main, args) == 1
     err = capsys.readouterr().err
     assert re.search(message, err), err
     assert not (tmp_path / "out").exists() and _leftovers(tmp_path) == []
