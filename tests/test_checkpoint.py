@@ -71,10 +71,10 @@ def _step(model, optimizers, generator):
 
 
 ROWS = [{"iteration": 0, "wall_s": 0.0, "lod": "", "loss": "", "heldout_psnr": 12.5},
-        {"iteration": 3, "wall_s": 1.5, "lod": 1, "loss": np.float64(0.25), "heldout_psnr": float("nan")}]
+        {"iteration": 2, "wall_s": 1.5, "lod": 1, "loss": np.float64(0.25), "heldout_psnr": float("nan")}]
 
 
-def _trained(spec, steps=3):
+def _trained(spec, steps=2):
     model, optimizers, generator = _training(spec)
     for _ in range(steps):
         _step(model, optimizers, generator)
@@ -83,10 +83,10 @@ def _trained(spec, steps=3):
 
 @pytest.fixture(scope="module")
 def saved(spec, tmp_path_factory):
-    """A checkpoint after three optimiser steps, and the training state it was written from."""
+    """A checkpoint after two optimiser steps, and the training state it was written from."""
     model, optimizers, generator = _trained(spec)
     path = tmp_path_factory.mktemp("saved") / "checkpoint.pt"
-    save_checkpoint(path, model, spec, optimizers, generator, 3, 1.5, ROWS, SETTINGS)
+    save_checkpoint(path, model, spec, optimizers, generator, 2, 1.5, ROWS, SETTINGS)
     return path, model, optimizers, generator
 
 
@@ -94,23 +94,25 @@ def test_checkpoint_reads_with_weights_only_and_resumes_bit_exactly(spec, tmp_pa
     model, optimizers, generator = _trained(spec)
     path = tmp_path / "checkpoint.pt"
     torch_rng = torch.get_rng_state()
-    save_checkpoint(path, model, spec, optimizers, generator, 3, 1.5, ROWS, SETTINGS)
+    save_checkpoint(path, model, spec, optimizers, generator, 2, 1.5, ROWS, SETTINGS)
     state = torch.load(path, weights_only=True)
-    assert state["version"] == 2 and state["iteration"] == 3 and state["spec"]["capture"] == FINGERPRINT
+    assert state["version"] == 2 and state["iteration"] == 2 and state["spec"]["capture"] == FINGERPRINT
     for key, value in spec["params"].items():  # stored as float64 tensors, not pickled numpy arrays
         assert torch.equal(state["spec"]["params"][key], torch.from_numpy(value)), key
+    assert state["spec"]["body_model_npz"].dtype == torch.uint8  # raw storage, not pickled bytes
+    assert state["spec"]["body_model_npz"].numpy().tobytes() == spec["body_model_npz"]
     assert type(state["log"][1]["loss"]) is float and state["log"][1]["loss"] == 0.25
 
     restored, restored_optimizers, restored_generator = _training(spec)
     assert not torch.equal(restored_generator.get_state(), generator.get_state())
     torch.manual_seed(123)
     iteration, wall, log = load_training_state(path, restored, restored_optimizers, restored_generator, spec, SETTINGS)
-    assert (iteration, wall) == (3, 1.5) and log[0] == ROWS[0] and log[1]["lod"] == 1
+    assert (iteration, wall) == (2, 1.5) and log[0] == ROWS[0] and log[1]["lod"] == 1
     assert torch.equal(restored_generator.get_state(), generator.get_state())
     assert torch.equal(torch.get_rng_state(), torch_rng)
     for a, b in zip(optimizers, restored_optimizers):
         for p, q in zip((p for g in a.param_groups for p in g["params"]), (q for g in b.param_groups for q in g["params"])):
-            assert a.state[p]["step"] == b.state[q]["step"] == 3
+            assert a.state[p]["step"] == b.state[q]["step"] == 2
             assert torch.equal(a.state[p]["exp_avg"], b.state[q]["exp_avg"])
             assert torch.equal(a.state[p]["exp_avg_sq"], b.state[q]["exp_avg_sq"])
     saved_weights = {k: v.clone() for k, v in model.state_dict().items()}
@@ -120,9 +122,8 @@ def test_checkpoint_reads_with_weights_only_and_resumes_bit_exactly(spec, tmp_pa
         assert torch.equal(avatar.state_dict()[key], value), key
 
     # Continuing the original and the restored training gives the same weights, bit for bit.
-    for _ in range(2):
-        _step(model, optimizers, generator)
-        _step(restored, restored_optimizers, restored_generator)
+    _step(model, optimizers, generator)
+    _step(restored, restored_optimizers, restored_generator)
     after = restored.state_dict()
     assert any(not torch.equal(after[k], v) for k, v in saved_weights.items())
     for key, value in model.state_dict().items():
@@ -161,7 +162,7 @@ def test_crafted_pickle_is_not_executed(spec, tmp_path, loader):
     assert not marker.exists()
     message = str(err.value)
     assert message.startswith(f"{path}: ") and "\n" not in message
-    assert "older format (version 1) or not a pig checkpoint" in message and "re-run the fit stage" in message
+    assert "older format (version 1) or not a pig checkpoint" in message and "delete it and re-run the fit stage" in message
 
 
 def test_version_1_checkpoint_gives_a_migration_error(spec, saved, tmp_path):
@@ -175,9 +176,9 @@ def test_version_1_checkpoint_gives_a_migration_error(spec, saved, tmp_path):
     with pytest.raises(CheckpointError, match="older format") as err:
         load_avatar(path)
     assert str(err.value) == (
-        f"{path}: holds Python objects that only a code-running load could restore: an avatar checkpoint of an older "
-        "format (version 1) or not a pig checkpoint, not loaded; re-run the fit stage (python -m pig.stages.fit) to "
-        "write it in format version 2")
+        f"{path}: not loaded: it holds Python objects that only a code-running load could restore, so it is an avatar "
+        "checkpoint of an older format (version 1) or not a pig checkpoint; delete it and re-run the fit stage "
+        "(python -m pig.stages.fit), which writes format version 2")
 
 
 def _flip_tensor_byte(data: bytes) -> bytes:
@@ -207,21 +208,32 @@ def test_corrupt_avatar_is_a_one_line_error_naming_the_file(saved, tmp_path, cas
     message = str(err.value)
     assert isinstance(err.value, ValueError) and "\n" not in message
     assert message.startswith(f"{path}: {expected}"), message
-    assert message.endswith("re-run the fit stage (python -m pig.stages.fit) to write it in format version 2")
+    assert message.endswith("; delete it and re-run the fit stage (python -m pig.stages.fit)")
 
 
 @pytest.mark.parametrize("content, expected", [
     (torch.zeros(3), "not an avatar checkpoint (no format version)"),
     ({"spec": {}}, "not an avatar checkpoint (no format version)"),
-    ({"version": 3, "spec": {}, "model": {}}, "avatar checkpoint of format version 3, this pig reads version 2"),
+    ({"version": 3, "spec": {}, "model": {}}, "avatar checkpoint of format version 3, this pig reads version 2; use the pig that wrote it, or delete it"),
     ({"version": 2, "model": {}}, "avatar checkpoint without ['spec']"),
 ])
 def test_foreign_torch_files_are_refused_by_name(tmp_path, content, expected):
     path = tmp_path / "avatar.pt"
     torch.save(content, path)
-    with pytest.raises(CheckpointError, match="re-run the fit stage") as err:
+    with pytest.raises(CheckpointError, match="delete it and re-run the fit stage") as err:
         load_avatar(path)
     assert str(err.value).startswith(f"{path}: {expected}")
+
+
+def test_weights_of_another_shape_are_refused_by_name(spec, saved, tmp_path):
+    state = torch.load(saved[0], weights_only=True)
+    state["model"] = {key: value[:1] if key.startswith("decoder.") else value for key, value in state["model"].items()}
+    path = tmp_path / "avatar.pt"
+    torch.save(state, path)
+    with pytest.raises(CheckpointError, match=f"^{re.escape(str(path))}: checkpoint does not match the model "
+                                              r"\(Error\(s\) in loading state_dict for AvatarModel: size mismatch for decoder\.") as err:
+        load_avatar(path)
+    assert "\n" not in str(err.value)
 
 
 def test_missing_or_directory_checkpoint_names_the_path(tmp_path):
@@ -299,7 +311,7 @@ def test_resume_refuses_another_capture_profile_or_variant(spec, saved):
 def test_resume_accepts_a_longer_run_and_other_cadence(spec, saved):
     settings = {"fit": {**SETTINGS["fit"], "iterations": 50, "eval_every": 1, "checkpoint_minutes": 0.0},
                 "rasterizer": {"backend": "cpu", "max_pairs": 10**7}}
-    assert _resume(saved[0], spec, settings)[0] == 3
+    assert _resume(saved[0], spec, settings)[0] == 2
 
 
 # ---- the capture's fingerprint ----

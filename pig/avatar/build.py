@@ -47,7 +47,7 @@ def canonical_vertices(body_model: BodyModel, betas) -> torch.Tensor:
 
 def build_avatar(spec: dict) -> AvatarModel:
     """spec: {"avatar", "field", "precond": config dicts, "body_model_npz": npz bytes of the body model
-    (`body_model_npz`), "params": SmplxParams fields (training frames, in order; arrays or tensors),
+    (`body_model_npz`), "params": SmplxParams fields (training frames, in order),
     "frame_ids": training frame ids}; other keys (the variant, the capture's fingerprint) are records.
     Deterministic per spec."""
     cfg = from_dict(AvatarConfig, spec["avatar"], "avatar spec")
@@ -60,7 +60,7 @@ def build_avatar(spec: dict) -> AvatarModel:
     except (OSError, ValueError) as err:  # not an npz, or pickled objects
         raise ValueError(f"{source}: not an npz of plain arrays ({err})") from err
     body_model = BodyModel(arrays, source=source)
-    params = SmplxParams(**{key: np.asarray(value) for key, value in spec["params"].items()})
+    params = SmplxParams(**spec["params"])
     with torch.no_grad():
         canon = canonical_vertices(body_model, params.betas)
     attachment = sample_attachment(canon.double().numpy(), body_model.faces.numpy(), cfg.num_anchors, cfg.levels, cfg.anchor_seed)
