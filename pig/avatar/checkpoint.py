@@ -147,7 +147,7 @@ def load_avatar(path: str | Path, device: str | torch.device = "cpu"):
     return model.to(device).eval()
 
 
-def fit_mismatch(state: dict, spec: dict, settings: dict[str, dict]) -> list[str]:
+def _mismatch(state: dict, spec: dict, settings: dict[str, dict]) -> list[str]:
     """What differs between the fit a checkpoint's state belongs to and the fit of `spec` and `settings`:
     the capture's parts, profile sections (with their keys) and the variant; empty when it may resume."""
     differs = []
@@ -170,9 +170,9 @@ def fit_mismatch(state: dict, spec: dict, settings: dict[str, dict]) -> list[str
 def load_training_state(path: Path, model, optimizers: list, generator: torch.Generator, spec: dict,
                         settings: dict[str, dict]) -> tuple[int, float, list[dict]]:
     """Restore weights, optimisers and RNG from a checkpoint of the same fit (capture, profile sections,
-    variant: see `fit_mismatch`); returns (iteration, wall seconds so far, log rows)."""
+    variant: see `_mismatch`); returns (iteration, wall seconds so far, log rows)."""
     state = _read(path, TRAINING_KEYS)
-    differs = fit_mismatch(state, spec, settings)
+    differs = _mismatch(state, spec, settings)
     if differs:
         raise CheckpointError(f"{path}: checkpoint of another fit, not resumed: {'; '.join(differs)}; "
                               "delete it to start the fit over, or point --output elsewhere")
