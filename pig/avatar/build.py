@@ -6,10 +6,12 @@ preconditioned per Eqs. 4-5, decoders (Eqs. 8-9) and refiner (Eq. 13); the paper
 from __future__ import annotations
 
 import io
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.lib import format as npy_format
 
 from pig.body.model import NUM_JOINTS, REQUIRED_KEYS, BodyModel, _dense
 from pig.body.params import SmplxParams
@@ -28,15 +30,34 @@ BODY_MODEL_KEYS = (*REQUIRED_KEYS, "hands_meanl", "hands_meanr")
 
 
 def body_model_npz(path: Path) -> bytes:
-    """The body model file's `BODY_MODEL_KEYS` as npz bytes that load without pickle, for the avatar spec.
+    """The body model file as npz bytes that load without pickle, for the avatar spec: the file itself when
+    it holds plain arrays only (a compressed file stays compressed), else its `BODY_MODEL_KEYS` rewritten.
 
     SMPL-X files may hold name tables or a sparse J_regressor as pickled objects; the spec keeps only
     plain arrays, so that reading a checkpoint never unpickles."""
-    with np.load(path, allow_pickle=True) as data:
+    path = Path(path)
+    if not _holds_objects(path):
+        return path.read_bytes()
+    with np.load(path, allow_pickle=True) as data:  # the user's model file, read as `BodyModel.from_file` does
         arrays = {key: _dense(data[key]) for key in BODY_MODEL_KEYS if key in data.files}
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
     return buffer.getvalue()
+
+
+def _holds_objects(path: Path) -> bool:
+    """Whether an npz has pickled (object) members, from the members' .npy headers alone."""
+    readers = {(1, 0): npy_format.read_array_header_1_0, (2, 0): npy_format.read_array_header_2_0}
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for name in archive.namelist():
+                with archive.open(name) as member:
+                    reader = readers.get(npy_format.read_magic(member))
+                    if reader is None or reader(member)[2].hasobject:  # other header versions: rewrite to be safe
+                        return True
+    except (zipfile.BadZipFile, ValueError) as err:
+        raise ValueError(f"{path}: not a readable npz body model file ({err})") from err
+    return False
 
 
 def canonical_vertices(body_model: BodyModel, betas) -> torch.Tensor:
