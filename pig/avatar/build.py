@@ -6,11 +6,14 @@ preconditioned per Eqs. 4-5, decoders (Eqs. 8-9) and refiner (Eq. 13); the paper
 from __future__ import annotations
 
 import io
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import torch
+from numpy.lib import format as npy_format
 
-from pig.body.model import NUM_JOINTS, BodyModel
+from pig.body.model import NUM_JOINTS, REQUIRED_KEYS, BodyModel, _dense
 from pig.body.params import SmplxParams
 from pig.config import from_dict
 from pig.field.latent_grid import FieldConfig, LatentGrid
@@ -22,6 +25,41 @@ from .config import AvatarConfig
 from .model import AvatarModel
 
 
+# The arrays of an SMPL-X npz that `BodyModel` reads.
+BODY_MODEL_KEYS = (*REQUIRED_KEYS, "hands_meanl", "hands_meanr")
+
+
+def body_model_npz(path: Path) -> bytes:
+    """The body model file as npz bytes that load without pickle, for the avatar spec: the file itself when
+    it holds plain arrays only (a compressed file stays compressed), else its `BODY_MODEL_KEYS` rewritten.
+
+    SMPL-X files may hold name tables or a sparse J_regressor as pickled objects; the spec keeps only
+    plain arrays, so that reading a checkpoint never unpickles."""
+    path = Path(path)
+    if not _holds_objects(path):
+        return path.read_bytes()
+    with np.load(path, allow_pickle=True) as data:  # the user's model file, read as `BodyModel.from_file` does
+        arrays = {key: _dense(data[key]) for key in BODY_MODEL_KEYS if key in data.files}
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def _holds_objects(path: Path) -> bool:
+    """Whether an npz has pickled (object) members, from the members' .npy headers alone."""
+    readers = {(1, 0): npy_format.read_array_header_1_0, (2, 0): npy_format.read_array_header_2_0}
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for name in archive.namelist():
+                with archive.open(name) as member:
+                    reader = readers.get(npy_format.read_magic(member))
+                    if reader is None or reader(member)[2].hasobject:  # other header versions: rewrite to be safe
+                        return True
+    except (zipfile.BadZipFile, ValueError) as err:
+        raise ValueError(f"{path}: not a readable npz body model file ({err})") from err
+    return False
+
+
 def canonical_vertices(body_model: BodyModel, betas) -> torch.Tensor:
     """The canonical mesh: the body model at zero pose with the capture's betas, zero expression, no translation."""
     zero = torch.zeros(1, NUM_JOINTS, 3, dtype=body_model.dtype)
@@ -29,14 +67,20 @@ def canonical_vertices(body_model: BodyModel, betas) -> torch.Tensor:
 
 
 def build_avatar(spec: dict) -> AvatarModel:
-    """spec: {"avatar", "field", "precond": config dicts, "body_model_npz": bytes of the body model file,
-    "params": SmplxParams fields (training frames, in order), "frame_ids": training frame ids}.
+    """spec: {"avatar", "field", "precond": config dicts, "body_model_npz": npz bytes of the body model
+    (`body_model_npz`), "params": SmplxParams fields (training frames, in order),
+    "frame_ids": training frame ids}; other keys (the variant, the capture's fingerprint) are records.
     Deterministic per spec."""
     cfg = from_dict(AvatarConfig, spec["avatar"], "avatar spec")
     field_cfg = from_dict(FieldConfig, spec["field"], "field spec")
     precond = from_dict(PrecondConfig, spec["precond"], "precond spec")
-    with np.load(io.BytesIO(spec["body_model_npz"]), allow_pickle=True) as data:
-        body_model = BodyModel({k: data[k] for k in data.files}, source="body model of the avatar spec")
+    source = "body model of the avatar spec"
+    try:
+        with np.load(io.BytesIO(spec["body_model_npz"]), allow_pickle=False) as data:
+            arrays = {key: data[key] for key in BODY_MODEL_KEYS if key in data.files}
+    except (OSError, ValueError) as err:  # not an npz, or pickled objects
+        raise ValueError(f"{source}: not an npz of plain arrays ({err})") from err
+    body_model = BodyModel(arrays, source=source)
     params = SmplxParams(**spec["params"])
     with torch.no_grad():
         canon = canonical_vertices(body_model, params.betas)

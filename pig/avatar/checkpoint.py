@@ -1,31 +1,60 @@
 """Avatar checkpoints: the model spec + weights, and for resuming the optimiser, RNG and log state.
 
-Written atomically (temporary name, then rename); `load_avatar` is the render stage's entry. No paper equation.
+Only tensors and plain Python values are stored, so `torch.load(weights_only=True)` reads them and loading
+never runs code. A resume is refused unless the capture, the profile sections the fit uses and the variant
+match. Written atomically (temporary name, then rename); `load_avatar` is the render stage's entry. No paper
+equation.
 """
 from __future__ import annotations
 
-from dataclasses import asdict
+import pickle
+import zipfile
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from pig.stages._io import atomic_path
 
 from .build import build_avatar
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 1 held numpy arrays, which only an unrestricted (code-running) unpickler reads
+AVATAR_KEYS = ("version", "spec", "model")
+TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteration", "wall_s", "log", "settings")
+# Settings that may change between runs of one fit: run length, logging and checkpoint cadence, memory bands.
+FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes"}, "rasterizer": {"max_pairs"}}
+SPEC_SECTIONS = ("avatar", "field", "precond")  # profile sections recorded in the spec
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is unreadable, of another format, or belongs to another fit."""
 
 
 def save_checkpoint(path: Path, model, spec: dict, optimizers: list, generator: torch.Generator, iteration: int,
-                    wall_s: float, log_rows: list[dict], fit_cfg) -> None:
-    state = {
-        "version": FORMAT_VERSION, "spec": spec, "model": _weights(model),
+                    wall_s: float, log_rows: list[dict], settings: dict[str, dict]) -> None:
+    """Write everything a resume needs; `spec` (see `build_avatar`) holds the capture's fingerprint under
+    "capture", and `settings` the other profile sections the fit uses ({"fit": {...}, "rasterizer": {...}})."""
+    state = _plain({
+        "version": FORMAT_VERSION, "spec": _stored_spec(spec), "model": _weights(model),
         "optimizers": [opt.state_dict() for opt in optimizers], "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(), "iteration": iteration, "wall_s": wall_s, "log": log_rows,
-        "fit": asdict(fit_cfg),
-    }
+        "settings": settings,
+    }, "state")
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
+
+
+def _stored_spec(spec: dict) -> dict:
+    """The spec with the body model's npz bytes as a uint8 tensor (written as raw storage; Python bytes are
+    pickled, 16x slower and a third larger) and the SMPL-X parameters as tensors."""
+    return {**spec, "body_model_npz": torch.frombuffer(bytearray(spec["body_model_npz"]), dtype=torch.uint8),
+            "params": {key: torch.from_numpy(np.asarray(value)) for key, value in spec["params"].items()}}
+
+
+def _loaded_spec(stored: dict) -> dict:
+    """Inverse of `_stored_spec`."""
+    return {**stored, "body_model_npz": stored["body_model_npz"].numpy().tobytes(),
+            "params": {key: value.numpy() for key, value in stored["params"].items()}}
 
 
 def _weights(model) -> dict:
@@ -34,42 +63,115 @@ def _weights(model) -> dict:
 
 
 def _load_weights(model, weights: dict, path: Path) -> None:
-    missing, unexpected = model.load_state_dict(weights, strict=False)
+    try:
+        missing, unexpected = model.load_state_dict(weights, strict=False)
+    except RuntimeError as err:  # shape mismatches, reported over several lines
+        raise CheckpointError(f"{path}: checkpoint does not match the model ({' '.join(str(err).split())})") from err
     missing = [k for k in missing if not k.startswith("body_model.")]
     if missing or unexpected:
-        raise ValueError(f"{path}: checkpoint does not match the model (missing {missing[:5]}, unexpected {unexpected[:5]})")
+        raise CheckpointError(f"{path}: checkpoint does not match the model (missing {missing[:5]}, unexpected {unexpected[:5]})")
 
 
-def _read(path: Path, device) -> dict:
-    if not Path(path).is_file():
+def _plain(value, where: str):
+    """`value` with numpy arrays as tensors and numpy scalars as Python numbers; refuses anything else
+    that `torch.load(weights_only=True)` could not read back."""
+    if isinstance(value, dict):
+        return {key: _plain(item, f"{where}[{key!r}]") for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        items = [_plain(item, f"{where}[{i}]") for i, item in enumerate(value)]
+        return items if isinstance(value, list) else tuple(items)
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(value.copy())
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, (torch.Tensor, str, bytes, bool, int, float)):
+        return value
+    raise TypeError(f"checkpoint {where}: a {type(value).__name__}; only tensors and plain Python values are stored")
+
+
+def _read(path: Path, keys: tuple[str, ...]) -> dict:
+    """The checkpoint's state, read without running code; a one-line `CheckpointError` naming the file otherwise."""
+    path = Path(path)
+    if not path.exists():
         raise FileNotFoundError(f"{path}: avatar checkpoint not found (run the fit stage: python -m pig.stages.fit)")
-    state = torch.load(path, map_location=device, weights_only=False)
-    if not isinstance(state, dict) or state.get("version") != FORMAT_VERSION:
-        raise ValueError(f"{path}: not an avatar checkpoint of format version {FORMAT_VERSION}")
+    if not path.is_file():
+        raise CheckpointError(f"{path}: not a file; expected an avatar checkpoint of the fit stage")
+    rerun = "delete it and re-run the fit stage (python -m pig.stages.fit)"
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path}: empty file, not an avatar checkpoint; {rerun}")
+    # The zip archive's CRCs catch truncation and flipped bytes that torch.load would read silently.
+    try:
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()
+    except (zipfile.BadZipFile, ValueError, NotImplementedError, EOFError, OverflowError) as err:
+        raise CheckpointError(f"{path}: corrupt, truncated or not an avatar checkpoint ({_first_line(err)}); {rerun}") from err
+    if damaged is not None:
+        raise CheckpointError(f"{path}: corrupt avatar checkpoint (member {damaged} fails its CRC check); {rerun}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise CheckpointError(f"{path}: not loaded: it holds Python objects that only a code-running load could restore, "
+                              "so it is an avatar checkpoint of an older format (version 1) or not a pig checkpoint; "
+                              f"{rerun}, which writes format version {FORMAT_VERSION}") from err
+    except (RuntimeError, ValueError, LookupError, EOFError) as err:
+        raise CheckpointError(f"{path}: corrupt or not an avatar checkpoint ({_first_line(err)}); {rerun}") from err
+    if not isinstance(state, dict) or "version" not in state:
+        raise CheckpointError(f"{path}: not an avatar checkpoint (no format version); {rerun}")
+    if state["version"] != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: avatar checkpoint of format version {state['version']}, this pig reads "
+                              f"version {FORMAT_VERSION}; use the pig that wrote it, or {rerun}")
+    missing = [key for key in keys if key not in state]
+    if missing:
+        raise CheckpointError(f"{path}: avatar checkpoint without {missing}; {rerun}")
     return state
+
+
+def _first_line(err: Exception) -> str:
+    """The first sentence of an exception's message (torch's go on for several lines)."""
+    text = str(err).strip().splitlines()
+    return text[0].split(". ")[0] if text else type(err).__name__
 
 
 def load_avatar(path: str | Path, device: str | torch.device = "cpu"):
     """The fitted `AvatarModel` of a checkpoint (avatar.pt), on `device`, in eval mode."""
-    state = _read(Path(path), "cpu")
-    model = build_avatar(state["spec"])
+    state = _read(Path(path), AVATAR_KEYS)
+    try:
+        model = build_avatar(_loaded_spec(state["spec"]))
+    except (AttributeError, KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(f"{path}: avatar spec unusable ({type(err).__name__}: {err})") from err
     _load_weights(model, state["model"], path)
     return model.to(device).eval()
 
 
-def load_training_state(path: Path, model, optimizers: list, generator: torch.Generator, spec: dict, fit_cfg) -> tuple[int, float, list[dict]]:
-    """Restore weights, optimisers and RNG from a checkpoint of the same configuration; returns
-    (iteration, wall seconds so far, log rows)."""
-    state = _read(path, "cpu")
-    for key in ("avatar", "field", "precond", "variant", "frame_ids"):
-        if state["spec"][key] != spec[key]:
-            raise ValueError(f"{path}: checkpoint was written with a different '{key}' configuration; "
-                             "delete it to start over or restore the configuration")
-    # The run length, logging and checkpoint cadence may change between runs; the optimisation may not.
-    free = {"iterations", "eval_every", "checkpoint_minutes"}
-    changed = sorted(k for k, v in asdict(fit_cfg).items() if k not in free and state["fit"].get(k) != v)
-    if changed:
-        raise ValueError(f"{path}: checkpoint was written with different fit settings {changed}; delete it to start over")
+def _mismatch(state: dict, spec: dict, settings: dict[str, dict]) -> list[str]:
+    """What differs between the fit a checkpoint's state belongs to and the fit of `spec` and `settings`:
+    the capture's parts, profile sections (with their keys) and the variant; empty when it may resume."""
+    differs = []
+    old_capture, new_capture = state["spec"].get("capture", {}), spec["capture"]
+    parts = sorted(key for key in old_capture.keys() | new_capture.keys() if old_capture.get(key) != new_capture.get(key))
+    if parts:
+        differs.append(f"the capture differs ({', '.join(parts)})")
+    sections = [(name, state["spec"].get(name, {}), spec[name]) for name in SPEC_SECTIONS]
+    sections += [(name, state["settings"].get(name, {}), values) for name, values in settings.items()]
+    for name, old, new in sections:
+        keys = sorted(key for key in old.keys() | new.keys()
+                      if key not in FREE_SETTINGS.get(name, ()) and old.get(key) != new.get(key))
+        if keys:
+            differs.append(f"profile section '{name}' differs in {', '.join(keys)}")
+    if state["spec"].get("variant") != spec["variant"]:
+        differs.append(f"the variant differs ({state['spec'].get('variant')!r}, now {spec['variant']!r})")
+    return differs
+
+
+def load_training_state(path: Path, model, optimizers: list, generator: torch.Generator, spec: dict,
+                        settings: dict[str, dict]) -> tuple[int, float, list[dict]]:
+    """Restore weights, optimisers and RNG from a checkpoint of the same fit (capture, profile sections,
+    variant: see `_mismatch`); returns (iteration, wall seconds so far, log rows)."""
+    state = _read(path, TRAINING_KEYS)
+    differs = _mismatch(state, spec, settings)
+    if differs:
+        raise CheckpointError(f"{path}: checkpoint of another fit, not resumed: {'; '.join(differs)}; "
+                              "delete it to start the fit over, or point --output elsewhere")
     _load_weights(model, state["model"], path)
     for opt, opt_state in zip(optimizers, state["optimizers"]):
         opt.load_state_dict(opt_state)  # moves the moments onto the parameters' device

@@ -5,7 +5,9 @@ fit stage's random access; data preparation, no paper equation.
 """
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
@@ -98,6 +100,39 @@ class Capture:
         report = _json(root / "report.json")
         background = np.asarray(report.get("background", [0, 0, 0]), dtype=np.float32) / 255
         return cls(root, cameras, frames.tolist(), params, split, background, cache_mb)
+
+    def fingerprint(self) -> dict[str, str]:
+        """SHA-256 of each part of the capture's content: cameras, SMPL-X parameters (with frame ids), split,
+        background, body model file, and the image and mask files by name and size. Cheap for thousands of
+        images (their bytes are not read) and equal for a rerun of preprocess on the same data."""
+        cameras = hashlib.sha256()
+        for name in sorted(self.cameras):
+            cam = self.cameras[name]
+            cameras.update(f"{name} {cam.width} {cam.height}\n".encode())
+            for array in (cam.K, cam.R, cam.T):
+                cameras.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+        smplx = hashlib.sha256(np.asarray(self.frames, dtype=np.int64).tobytes())
+        for array in (self.params.full_pose, self.params.betas, self.params.expression, self.params.transl):
+            smplx.update(repr(array.shape).encode())
+            smplx.update(np.ascontiguousarray(array, dtype=np.float64).tobytes())
+        with open(self.root / "body_model.npz", "rb") as file:
+            body_model = hashlib.file_digest(file, "sha256")
+        files = hashlib.sha256()
+        for kind in ("images", "masks"):
+            for name in sorted(self.cameras):
+                folder = self.root / kind / name
+                entries = sorted(os.scandir(folder), key=lambda e: e.name) if folder.is_dir() else []
+                for entry in entries:
+                    if entry.name.endswith(".png"):
+                        files.update(f"{kind}/{name}/{entry.name} {entry.stat().st_size}\n".encode())
+        return {
+            "cameras": cameras.hexdigest(),
+            "smplx": smplx.hexdigest(),
+            "split": hashlib.sha256(json.dumps(self.split, sort_keys=True).encode()).hexdigest(),
+            "background": hashlib.sha256(self.background.astype(np.float64).tobytes()).hexdigest(),
+            "body_model": body_model.hexdigest(),
+            "images": files.hexdigest(),
+        }
 
     def has(self, camera: str, frame: int) -> bool:
         """Whether the capture holds an image and mask of `camera` at `frame` (missing raw frames do not)."""

@@ -21,7 +21,7 @@ import torch
 from tqdm import tqdm
 
 from pig.avatar.batches import CaptureViews, sample_batch
-from pig.avatar.build import build_avatar, build_optimizers
+from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
 from pig.avatar.losses import band_radius, boundary_band, image_loss
@@ -194,16 +194,18 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
     params = perturb_params(capture.params.select(index), fit_cfg.sigma_body, fit_cfg.seed)
     spec = {
         "avatar": asdict(avatar_cfg), "field": asdict(field_cfg), "precond": asdict(precond_cfg),
-        "body_model_npz": (Path(capture_dir) / "body_model.npz").read_bytes(),
+        "body_model_npz": body_model_npz(Path(capture_dir) / "body_model.npz"),
         "params": asdict(params), "frame_ids": [int(f) for f in train["frames"]], "variant": variant,
+        "capture": capture.fingerprint(),
     }
+    settings = {"fit": asdict(fit_cfg), "rasterizer": asdict(raster)}  # the other sections a resume must match
     torch.manual_seed(fit_cfg.seed)
     model = build_avatar(spec).to(device)
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg)
     generator = torch.Generator().manual_seed(fit_cfg.seed)
     start, wall_before, rows = 0, 0.0, []
     if state_path.exists():
-        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, fit_cfg)
+        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings)
         print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
 
     views = CaptureViews(capture, train["cameras"], train["frames"], device)
@@ -213,7 +215,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
     weights = (fit_cfg.weight_l1, fit_cfg.weight_ssim, fit_cfg.weight_lpips)
 
     def checkpoint(path: Path, iteration: int, wall: float) -> None:
-        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, fit_cfg)
+        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings)
         _write_log(log_path, rows)
 
     started = time.perf_counter()
