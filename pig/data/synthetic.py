@@ -17,6 +17,7 @@ import torch
 from tqdm import tqdm
 
 from pig.body.model import BodyModel
+from pig.body.npz import read_npz
 from pig.body.standin import make_standin_arrays
 from pig.stages._outputs import build_dir, claim_dir
 
@@ -70,8 +71,7 @@ def body_model_arrays(cfg: SyntheticConfig) -> dict[str, np.ndarray]:
     path = Path(cfg.body_model)
     if not path.is_file():
         raise SyntheticError(f"synthetic.body_model: {path} does not exist (expected an SMPL-X model npz)")
-    with np.load(path, allow_pickle=True) as data:
-        return {k: data[k] for k in data.files}
+    return read_npz(path, SyntheticError, "an SMPL-X model npz", pickled=("J_regressor",))
 
 
 @dataclass
