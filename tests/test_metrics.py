@@ -412,3 +412,30 @@ def test_tables_refuse_mixed_or_unnamed_lpips_backbones(tmp_path):
     with pytest.raises(ValueError, match=r"s2/pig/metrics/novel_view_lod0\.json: summary does not name its LPIPS backbone"):
         make_tables("dna", unnamed, [], ["pig"], out)
     assert not out.exists()
+
+
+def test_tables_state_the_smallest_fid_set_and_refuse_a_fid_without_its_count(tmp_path):
+    from pig.stages.tables import make_tables
+
+    def scored(subject: str, **fid):
+        path = _scored(tmp_path, subject, "alex")
+        write_json(path, {**json.loads(path.read_text()), "fid_min_images": 2000, **fid})
+        return path
+
+    full, short = scored("s0", fid=10.0, fid_images=2000), scored("s1", fid=12.0, fid_images=1999)
+    out = tmp_path / "tables"
+    make_tables("dna", [full, short], [], ["pig"], out)
+    main = pd.read_csv(out / "dna.csv").set_index("variant")
+    assert main.loc["pig", "novel_view_fid"] == pytest.approx(11.0)
+    assert main.loc["pig", "novel_view_fid_images"] == 1999 and main.loc["pig", "novel_view_fid_biased"] == 1
+    assert "| 11.00 (N=1999, biased) |" in (out / "dna.md").read_text()
+    assert math.isnan(main.loc["pig", "novel_pose_fid_images"])  # no novel-pose summary, no count
+    make_tables("dna", [full], [], ["pig"], out)
+    assert "| 10.00 (N=2000) |" in (out / "dna.md").read_text()
+    assert pd.read_csv(out / "dna.csv").set_index("variant").loc["pig", "novel_view_fid_biased"] == 0
+
+    older = _scored(tmp_path, "s2", "alex")
+    write_json(older, {**json.loads(older.read_text()), "fid": 10.0})
+    with pytest.raises(ValueError, match=r"s2/pig/metrics/novel_view_lod0\.json: summary has a FID but not the image "
+                                         r"count it was computed over \(no fid_images / fid_min_images"):
+        make_tables("dna", [full, older], [], ["pig"], out)
