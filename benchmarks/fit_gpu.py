@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import shutil
 import statistics
 import sys
@@ -33,6 +32,7 @@ import yaml
 
 from pig.config import load_profile
 from pig.data.synthetic import SyntheticConfig, generate_capture
+from pig.stages._io import write_json
 from pig.stages.fit import fit
 from pig.stages.preprocess import main as preprocess
 
@@ -234,7 +234,7 @@ def main(argv=None) -> int:
         if "ops_table" in r:
             print(f"\nOperators by device time, variant {r['name']} ({args.profile_ops} iterations):\n{r['ops_table']}")
     if args.json is not None:
-        args.json.write_text(json.dumps({"stamps": stamps, "results": results}, indent=1))
+        write_json(args.json, {"stamps": stamps, "results": results})
     return 0
 
 
