@@ -200,6 +200,16 @@ def test_initial_value_is_exact_for_any_lambda(case, lam):
         assert torch.equal(p(), x0)
 
 
+@pytest.mark.parametrize("solver", ["factorized", "cg"])
+def test_configured_anchors_start_exactly_at_their_initial_positions(solver):
+    """The fit's path (precondition_anchors from the profile section) at anchor lambda 1e8, float32 metres."""
+    x_init = (torch.rand(300, 3, generator=torch.Generator().manual_seed(5)) * torch.tensor([0.6, 1.8, 0.3])).float()
+    cfg = PrecondConfig(anchor_lambda=1e8, knn_solver=solver)
+    anchors = precondition_anchors(x_init, cfg)
+    with torch.no_grad():
+        assert torch.equal(anchors(), x_init)
+
+
 @pytest.mark.parametrize("case", STIFF)
 @pytest.mark.parametrize("form", ["substitute", "filter"])
 @pytest.mark.parametrize("lam", [0.0, 8.0, 1e6, 1e8])

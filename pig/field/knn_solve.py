@@ -80,7 +80,7 @@ class _KnnSystem:
         """A x for float64 columns x (N, C)."""
         if self.lam == 0.0:
             return x.clone()
-        return x + self.lam * (self._laplacian_on(x.device) @ x)
+        return torch.addmm(x, self._laplacian_on(x.device), x, alpha=self.lam)
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
         """A x for x (N, ...) on x's device, computed in float64, returned in x's dtype."""
@@ -151,12 +151,12 @@ class CGSystem(_KnnSystem):
                 pap = (p * ap).sum(dim=0)
                 # Columns that already converged exactly have p = 0; keep them fixed instead of dividing 0 by 0.
                 alpha = torch.where(pap > 0, rz / torch.where(pap > 0, pap, torch.ones_like(pap)), torch.zeros_like(pap))
-                x = x + alpha * p
-                r = r - alpha * ap
-                z = inv_diag * r
+                x.addcmul_(alpha, p)
+                r.addcmul_(alpha, ap, value=-1.0)
+                torch.mul(inv_diag, r, out=z)
                 rz_new = (r * z).sum(dim=0)
                 beta = torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, torch.ones_like(rz)), torch.zeros_like(rz))
-                p = z + beta * p
+                p.mul_(beta).add_(z)
                 rz = rz_new
                 iterations += 1
                 if (r.norm(dim=0) / safe_norm).max().item() <= self.tol:
@@ -171,4 +171,4 @@ class CGSystem(_KnnSystem):
                 stacklevel=2,
             )
         self._warm[slot] = x
-        return x.to(b.dtype).reshape(b.shape)
+        return x.to(b.dtype, copy=True).reshape(b.shape)

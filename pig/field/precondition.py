@@ -10,8 +10,8 @@ Forms (`PrecondConfig.form`, profile section `precond`):
   the same symmetric system, so dL/du = (I + lambda L)^-1 dL/dx and a gradient step on u moves x by
   -lr (I + lambda L)^-2 dL/dx: again Eqs. 4-5 under gradient descent. u starts at exactly 0, so x0 comes
   back exactly for any lambda. Storing u = (I + lambda L) x instead (the predecessor's choice; the same
-  gradient path, since only u's increments matter to the optimiser) kept lambda |L x| ~ 1e8 m in float32
-  at lambda = 1e8 and shifted the recovered initial anchors by up to 0.4 m (1.2 cm at lambda = 1e6).
+  gradient path, since only u's increments reach the optimiser) rounded A x0 to float32 and shifted the
+  recovered initial anchors (100k) by up to 5 mm at lambda = 1e6 and 1.1 m at lambda = 1e8.
   An all-zero start (the latent grid's default) stores no origin. A state dict without `origin` (written
   before origins existed) loads as x0 = 0, which is what it meant.
 - "none": a plain parameter (the no-preconditioning ablation).
@@ -21,9 +21,10 @@ Adam at the paper's learning rates, is the one the toy fits of benchmarks/precon
 (benchmarks/NOTES.md, "Preconditioning").
 
 Use: `p = PreconditionedTensor(x0, system, form)`; `p()` returns x (differentiable); optimise
-`p.param`; `p.set_value(x)` overwrites x; `p.bake()` freezes the current x as a plain tensor. Call `p()` once per optimisation step and reuse the result:
-every call runs the solves. A system is any object with `solve(b, slot) -> A^-1 b` and `apply(x) -> A x`
-(LatticeSystem, FactorizedSystem, CGSystem); `slot` names the warm start an iterative solver reuses.
+`p.param`; `p.set_value(x)` overwrites x; `p.bake()` freezes the current x as a plain tensor. Call
+`p()` once per optimisation step and reuse the result: every call runs the solves. A system is any
+object with `solve(b, slot) -> A^-1 b` and `apply(x) -> A x` (LatticeSystem, FactorizedSystem,
+CGSystem); `slot` names the warm start an iterative solver reuses.
 """
 from __future__ import annotations
 
