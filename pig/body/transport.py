@@ -28,7 +28,7 @@ def _perpendicular(t: torch.Tensor) -> torch.Tensor:
     return p / p.norm(dim=-1, keepdim=True)
 
 
-def _neighbourhood_sums(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _neighbourhood_sums(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Sums over the triangles touching each attachment triangle's corners (with multiplicity) of their
     area-weighted normals and of their first edges: (B, N, 3) each."""
     triangles = vertices[:, faces]  # (B, F, 3 corners, 3)

@@ -145,7 +145,8 @@ class PreconditionedTensor(nn.Module):
         # The state dict says whether there is an origin (a zero start, or one written before origins, has none).
         if self.form == "substitute":
             stored = state_dict.get(prefix + "origin")
-            self.origin = None if stored is None else torch.empty(stored.shape, dtype=self.param.dtype, device=self.param.device)
+            like = self.param
+            self.origin = None if stored is None else torch.empty(stored.shape, dtype=like.dtype, device=like.device)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
