@@ -65,8 +65,8 @@ def load_training_state(path: Path, model, optimizers: list, generator: torch.Ge
         if state["spec"][key] != spec[key]:
             raise ValueError(f"{path}: checkpoint was written with a different '{key}' configuration; "
                              "delete it to start over or restore the configuration")
-    # The run length, logging and checkpoint cadence may change between runs; the optimisation may not.
-    free = {"iterations", "eval_every", "checkpoint_minutes"}
+    # Run length, logging, checkpoint cadence and view loading may change between runs; the optimisation may not.
+    free = {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers"}
     changed = sorted(k for k, v in asdict(fit_cfg).items() if k not in free and state["fit"].get(k) != v)
     if changed:
         raise ValueError(f"{path}: checkpoint was written with different fit settings {changed}; delete it to start over")
