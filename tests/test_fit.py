@@ -278,3 +278,18 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     assert error_line(err.value).startswith(f"{path}: truncated")
     assert (state.read_bytes(), log.read_bytes()) == saved and not (tmp_path / "pig" / "avatar.pt").exists()
     assert sorted(p.name for p in (tmp_path / "pig").iterdir()) == sorted([".pig-stage", "checkpoint.pt", "train_log.csv"])
+
+
+def test_fit_without_training_images_names_the_capture(small_capture, tmp_path):
+    import shutil
+
+    from pig.data.raw import CaptureError
+    from pig.stages.fit import fit
+
+    capture_dir = tmp_path / "capture"
+    shutil.copytree(small_capture, capture_dir)
+    for folder in (capture_dir / "images").iterdir():
+        shutil.rmtree(folder)
+    with pytest.raises(CaptureError, match=r"capture: no image and mask of the train split \(cameras \['cam00'"):
+        fit(capture_dir, tmp_path / "pig", _profile(tmp_path))
+    assert not any((tmp_path / "pig" / name).exists() for name in ("avatar.pt", "checkpoint.pt", "train_log.csv"))

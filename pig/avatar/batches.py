@@ -127,10 +127,6 @@ class ViewSource:
         """Cancel staged decodes not yet started and wait for the running ones."""
         self._pool.shutdown(wait=True, cancel_futures=True)
 
-    def cameras_with_views(self, timestep: int, cameras: list[str]) -> list[str]:
-        """Those of `cameras` with an image and mask of the timestep's frame (missing raw frames have none)."""
-        return [c for c in cameras if self.capture.has(c, self.frames[timestep])]
-
     def stage(self, steps: list[tuple[int, list[str]]]) -> _Staged:
         """Start decoding the views of (timestep, cameras) pairs; returns at once."""
         sizes: dict[tuple[int, int], int] = {}  # views per image size

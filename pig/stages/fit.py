@@ -29,6 +29,7 @@ from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.config import ConfigError, load_profile, load_section, resolve_device
 from pig.data.capture import Capture
+from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.metrics.psnr import psnr
@@ -144,8 +145,8 @@ class HeldOut:
         split = capture.split["novel_view"]
         frames = [f for f in split["frames"] if f in model.frame_ids]
         picks = [frames[int(i)] for i in np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).round())] if frames else []
-        steps = [model.timestep_of_frame(f) for f in picks]
-        self.steps = [(step, cams) for step in steps if (cams := source.cameras_with_views(step, split["cameras"]))]
+        seen_by = {f: [c for c in split["cameras"] if capture.has(c, f)] for f in picks}
+        self.steps = [(model.timestep_of_frame(f), cams) for f, cams in seen_by.items() if cams]
         self.source, self.chunk = source, chunk
 
     @torch.no_grad()
@@ -210,6 +211,11 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
 
     capture = Capture.load(capture_dir, cache_mb=0)  # the view source caches decoded views
     train = capture.split["train"]
+    # Per timestep, the cameras with an image and mask of its frame (a missing raw frame has none).
+    seen_by = tuple(tuple(c for c in train["cameras"] if capture.has(c, f)) for f in train["frames"])
+    if not any(seen_by):
+        raise CaptureError(f"{capture_dir}: no image and mask of the train split (cameras {train['cameras']}) under "
+                           "images/ and masks/; rerun preprocess")
     index = [capture.frames.index(f) for f in train["frames"]]
     params = perturb_params(capture.params.select(index), fit_cfg.sigma_body, fit_cfg.seed)
     spec = {
@@ -235,7 +241,6 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
         _write_log(log_path, rows)
 
     with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers) as source:
-        seen_by = tuple(tuple(source.cameras_with_views(t, train["cameras"])) for t in range(model.num_timesteps))
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
