@@ -1,13 +1,16 @@
-"""GPU benchmark of the fit stage at the paper's sizes: milliseconds per iteration, peak GPU memory, where the time goes.
+"""GPU benchmark of the fit stage at the paper's sizes: milliseconds per iteration, data wait, peak GPU memory, where the time goes.
 
 Generates a synthetic capture at the paper profile's image size (fewer frames, so it finishes in
 minutes), preprocesses it, runs `pig.stages.fit` with the `paper` profile (100k anchors, 4 views x 5
 timesteps, 5 x 512 decoders) once per `--variant` on that same capture, in this process, and prints
-one table row per variant with its ratio to the first. Run on the GPU machine:
+one table row per variant with its ratio to the first, and the time each iteration waited for its training
+views (train_log.csv's data_wait_ms: decoding, staging and the copy to the GPU that prefetching did not hide).
+Run on the GPU machine:
 
     bash .gpu/device-setup.sh && export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text && \
         python3 benchmarks/fit_gpu.py --iterations 60 --profile-phases 10 \
-            --variant factorized:precond.knn_solver=factorized --variant cg:precond.knn_solver=cg
+            --variant factorized:precond.knn_solver=factorized --variant cg:precond.knn_solver=cg \
+            --variant no_prefetch:fit.prefetch=0
 
 A variant is `NAME:section.key=value,...` (values in YAML) over the profile; the key `torch.tf32`
 lets float32 matmuls use TF32 during that fit. After the timed iterations, `--profile-phases N`
@@ -18,8 +21,8 @@ torch.profiler and prints the operators that take the most device time.
 from __future__ import annotations
 
 import argparse
+import csv
 import gc
-import json
 import shutil
 import statistics
 import sys
@@ -33,6 +36,7 @@ import yaml
 
 from pig.config import load_profile
 from pig.data.synthetic import SyntheticConfig, generate_capture
+from pig.stages._io import write_json
 from pig.stages.fit import fit
 from pig.stages.preprocess import main as preprocess
 
@@ -150,9 +154,15 @@ def run_variant(args, name: str, overrides: dict, tf32: bool, profile: dict, cap
         if timer is not None:
             timer.close()
     steps = [b - a for a, b in zip(times[args.warmup:], times[args.warmup + 1:])]
+    # The data wait of the same iterations (the first timed step ends iteration warmup + 2).
+    with open(out_dir / "train_log.csv", newline="") as file:
+        waits = [float(row["data_wait_ms"]) for row in csv.DictReader(file)
+                 if args.warmup + 2 <= int(row["iteration"]) <= args.iterations]
     result = {
         "name": name, "overrides": overrides, "tf32": tf32, "iterations_timed": len(steps),
         "ms_median": 1000 * statistics.median(steps), "ms_mean": 1000 * statistics.mean(steps),
+        "wait_ms_median": statistics.median(waits), "wait_ms_mean": statistics.mean(waits),
+        "wait_share": statistics.mean(waits) / (1000 * statistics.mean(steps)),
         "peak_gib": torch.cuda.max_memory_allocated() / 2**30, "fit_total_s": time.perf_counter() - t0,
         "log": str(out_dir / "train_log.csv"),
     }
@@ -208,6 +218,8 @@ def main(argv=None) -> int:
         ("device", torch.cuda.get_device_name()),
         ("anchors / levels", f"{profile['avatar']['num_anchors']} / {profile['avatar']['levels']}"),
         ("views x timesteps", f"{profile['fit']['views']} x {profile['fit']['timesteps']}"),
+        ("view cache / loader workers / prefetch",
+         " / ".join(str(profile["fit"].get(k, "default")) for k in ("view_cache", "loader_workers", "prefetch"))),
         ("capture", f"{syn.cameras} cameras x {syn.frames} frames, {syn.width} x {syn.height}"),
         *((k, f"{v:.1f}") for k, v in stamps.items()),
     ]
@@ -215,11 +227,12 @@ def main(argv=None) -> int:
     for key, value in header:
         print(f"{key:<{width}}  {value}")
     base = results[0]["ms_median"]
-    print("\n| variant | overrides | ms/it median | mean | vs first | peak GiB | timed |")
-    print("|---|---|---|---|---|---|---|")
+    print("\n| variant | overrides | ms/it median | mean | vs first | data wait ms median | mean | share | peak GiB | timed |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         over = ", ".join(f"{s}.{k}={v}" for s, kv in r["overrides"].items() for k, v in kv.items()) + (" tf32" if r["tf32"] else "")
         print(f"| {r['name']} | {over or '-'} | {r['ms_median']:.1f} | {r['ms_mean']:.1f} | {r['ms_median'] / base:.3f} "
+              f"| {r['wait_ms_median']:.2f} | {r['wait_ms_mean']:.2f} | {100 * r['wait_share']:.1f} % "
               f"| {r['peak_gib']:.2f} | {r['iterations_timed']} |")
     if args.profile_phases:
         names = sorted({k for r in results for k in r["phases_ms"]})
@@ -234,7 +247,7 @@ def main(argv=None) -> int:
         if "ops_table" in r:
             print(f"\nOperators by device time, variant {r['name']} ({args.profile_ops} iterations):\n{r['ops_table']}")
     if args.json is not None:
-        args.json.write_text(json.dumps({"stamps": stamps, "results": results}, indent=1))
+        write_json(args.json, {"stamps": stamps, "results": results})
     return 0
 
 

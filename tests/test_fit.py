@@ -115,12 +115,13 @@ def test_model_outputs_levels_and_novel_pose_override(standin):
 # ---- fit stage on a generated capture (slow: generation + two short fits) ----
 
 
-def _profile(tmp_path, **fit):
+def _profile(tmp_path, avatar=None, **fit):
     from pig.config import load_profile
 
     profile = load_profile("test")
     profile.pop("_path")
     profile["fit"].update(fit)
+    profile["avatar"].update(avatar or {})
     path = tmp_path / "profile.yaml"
     path.write_text(yaml.safe_dump(profile))
     return str(path)
@@ -217,3 +218,115 @@ def test_single_timestep_and_single_level_decode_and_train(standin):
     for name, module in (("grid", model.grid), ("decoders", model.decoder)):
         assert sum(p.grad.abs().sum().item() for p in module.parameters() if p.grad is not None) > 0, name
     assert model.timestep_of_frame(7) == 0 and model.nearest_timestep(torch.zeros(55, 3)) == 0
+
+
+class _Killed(Exception):
+    pass
+
+
+def _record_batches(monkeypatch) -> list:
+    """Patch the fit's batch source to record what each iteration trains on: the LOD, the (timestep, cameras)
+    of each view batch and the sum of its pixels."""
+    from pig.avatar.batches import TrainingBatches
+
+    record, get = [], TrainingBatches.get
+
+    def recording_get(self, iteration):
+        batch = get(self, iteration)
+        record.append((iteration, batch.lod, [(vb.timestep, tuple(vb.cameras), vb.images.double().sum().item())
+                                              for views in batch.views for vb in views]))
+        return batch
+
+    monkeypatch.setattr(TrainingBatches, "get", recording_get)
+    return record
+
+
+@pytest.mark.slow
+def test_killed_and_resumed_fit_draws_the_same_batches_and_weights(small_capture, tmp_path, monkeypatch):
+    """A fit killed after iteration 3 and resumed trains on the batches of an uninterrupted one, iteration for
+    iteration, and ends with bit-identical weights."""
+    from pig.stages.fit import fit
+
+    profile = _profile(tmp_path, {"num_anchors": 300}, iterations=7, eval_every=100, checkpoint_minutes=0.0, views=2,
+                       timesteps=2, prefetch=3, loader_workers=2, view_cache=4)
+    record = _record_batches(monkeypatch)
+    reference = fit(small_capture, tmp_path / "full", profile)
+    uninterrupted = list(record)
+    record.clear()
+
+    def kill_at_3(iteration):
+        if iteration == 3:
+            raise _Killed
+
+    with pytest.raises(_Killed):
+        fit(small_capture, tmp_path / "resumed", profile, on_iteration=kill_at_3)
+    resumed = fit(small_capture, tmp_path / "resumed", profile)
+    # Iterations 0-2, then 3-6 after the resume (the killed run had staged 3-5 ahead: dropped, drawn again).
+    assert [r[0] for r in record] == list(range(7)) and record == uninterrupted
+    assert len({(r[1], tuple(b[:2] for b in r[2])) for r in record}) > 4  # the batches differ between iterations
+    a, b = load_avatar(reference).state_dict(), load_avatar(resumed).state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
+
+
+@pytest.mark.slow
+def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint(small_capture, tmp_path):
+    """A training image truncated after the fit started is found when the first batch that needs it is due:
+    the iterations before it run, the error names the file, and checkpoint.pt and the log stay as saved."""
+    import shutil
+
+    from pig.avatar.batches import Sampler
+    from pig.data.capture import Capture
+    from pig.data.raw import CaptureError
+    from pig.stages._cli import error_line
+    from pig.stages.fit import fit
+
+    capture_dir = tmp_path / "capture"
+    shutil.copytree(small_capture, capture_dir)
+    small = {"num_anchors": 300}
+    profile = _profile(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=0.0, prefetch=2, view_cache=64)
+    def kill_at_3(iteration):
+        if iteration == 3:
+            raise _Killed
+
+    with pytest.raises(_Killed):
+        fit(capture_dir, tmp_path / "pig", profile, on_iteration=kill_at_3)
+    state, log = tmp_path / "pig" / "checkpoint.pt", tmp_path / "pig" / "train_log.csv"
+    saved = state.read_bytes(), log.read_bytes()
+
+    # The view whose first use after the resume (at iteration index 3) comes last.
+    capture = Capture.load(capture_dir)
+    train = capture.split["train"]
+    sampler = Sampler(0, 2, tuple(tuple(train["cameras"]) for _ in train["frames"]), 1, 2)  # the test profile's fit
+    first_use = {}
+    for i in range(3, 12):
+        for step, cams in sampler.picks(i).steps:
+            for cam in cams:
+                first_use.setdefault((cam, train["frames"][step]), i)
+    (cam, frame), due = max(first_use.items(), key=lambda item: item[1])
+    assert due >= 5
+    [path] = (capture_dir / "images" / cam).glob(f"{frame:08d}.*")
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+    done = []
+    resume_profile = _profile(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=1e6, prefetch=2, view_cache=64)
+    with pytest.raises(CaptureError) as err:
+        fit(capture_dir, tmp_path / "pig", resume_profile, on_iteration=done.append)
+    assert done == list(range(4, due + 1))  # trained up to the batch that needs the file
+    assert error_line(err.value).startswith(f"{path}: truncated")
+    assert (state.read_bytes(), log.read_bytes()) == saved and not (tmp_path / "pig" / "avatar.pt").exists()
+    assert sorted(p.name for p in (tmp_path / "pig").iterdir()) == sorted([".pig-stage", "checkpoint.pt", "train_log.csv"])
+
+
+def test_fit_without_training_images_names_the_capture(small_capture, tmp_path):
+    import shutil
+
+    from pig.data.raw import CaptureError
+    from pig.stages.fit import fit
+
+    capture_dir = tmp_path / "capture"
+    shutil.copytree(small_capture, capture_dir)
+    for folder in (capture_dir / "images").iterdir():
+        shutil.rmtree(folder)
+    with pytest.raises(CaptureError, match=r"capture: no image and mask of the train split \(cameras \['cam00'"):
+        fit(capture_dir, tmp_path / "pig", _profile(tmp_path))
+    assert not any((tmp_path / "pig" / name).exists() for name in ("avatar.pt", "checkpoint.pt", "train_log.csv"))

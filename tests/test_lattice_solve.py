@@ -58,6 +58,24 @@ def test_solve_matches_dense_float64(method, shape, lam, rng):
     assert np.linalg.norm(x - ref) / np.linalg.norm(ref) < 1e-10
 
 
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(1, 1, 1), (2, 1, 1), (5, 3, 2)])
+@pytest.mark.parametrize("lam", [0.0, 1.0, 8.0, 1e6, 1e8])
+def test_solve_is_exact_to_rounding_for_any_lambda(method, dtype, shape, lam, rng):
+    """Against L's float64 eigendecomposition (whose accuracy, unlike a dense solve's, does not depend on
+    lambda): the DCT solve is orthogonal transforms and a diagonal <= 1, so its error is a few eps |b|."""
+    b = rng.normal(size=(2, *shape)) + 3.0  # a mean, as features and positions have
+    mu, v = np.linalg.eigh(dense_lattice_laplacian(shape))
+    mu = np.where(mu < 1e-9, 0.0, mu)
+    cols = b.reshape(2, -1).T
+    ref = (v @ ((v.T @ cols) / (1.0 + lam * mu)[:, None])).T.reshape(b.shape)
+    x = LatticeSystem(shape, lam, method).solve(torch.from_numpy(b).to(dtype))
+    assert x.dtype == dtype
+    error = np.linalg.norm((x.double().numpy() - ref).reshape(2, -1), axis=1)
+    assert np.all(error <= 20 * torch.finfo(dtype).eps * np.linalg.norm(b.reshape(2, -1), axis=1))
+
+
 @pytest.mark.parametrize("shape", [(1, 1, 1), (3, 1, 2), (5, 4, 3)])
 def test_apply_matches_dense(shape, rng):
     x = rng.normal(size=(3, *shape))

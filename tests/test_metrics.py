@@ -14,7 +14,7 @@ import yaml
 from skimage.metrics import structural_similarity
 
 from pig.body.params import SmplxParams
-from pig.metrics.fid import InceptionFeatures, fid_from_features, frechet_distance
+from pig.metrics.fid import FeatureStatistics, InceptionFeatures, fid_from_statistics, frechet_distance
 from pig.metrics.lpips import LPIPS, WeightsMissing, backbone_features
 from pig.metrics.psnr import psnr
 from pig.metrics.ssim import ssim
@@ -95,12 +95,14 @@ def test_frechet_distance_singular_covariances(rng):
     zero = np.zeros(3)
     assert frechet_distance(zero, 4 * np.outer(e0, e0), zero, 9 * np.outer(e1, e1)) == pytest.approx(13.0, abs=1e-9)
     assert frechet_distance(zero, 4 * np.outer(e0, e0), zero, 9 * np.outer(e0, e0)) == pytest.approx(1.0, abs=1e-9)
-    # Few samples in many dimensions (rank-deficient, as FID on a small test set): finite and ~0 for a set against itself.
-    features = rng.normal(size=(10, 64))
-    value, reason = fid_from_features(features, features, min_images=5)
-    assert reason == "" and abs(value) < 1e-8
-    value, reason = fid_from_features(features, features, min_images=2000)
-    assert math.isnan(value) and "2000" in reason
+    # Few samples in many dimensions (rank-deficient, as FID on a small test set): finite and ~0 for a set
+    # against itself, flagged as biased below min_images but still computed.
+    stats = FeatureStatistics()
+    stats.update(rng.normal(size=(10, 64)))
+    value, note = fid_from_statistics(stats, stats, min_images=5)
+    assert note == "" and abs(value) < 1e-8
+    value, note = fid_from_statistics(stats, stats, min_images=2000)
+    assert abs(value) < 1e-8 and note == "FID over 10 images (< 2000): biased high, compare only at equal N"
 
 
 def _reference_alex_lpips(backbone: dict, linear: dict, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -254,28 +256,104 @@ def test_inception_features_load_torchscript(tmp_path, empty_hub):
         InceptionFeatures(tmp_path / "absent.pt")
 
 
-def _tiny_capture(root, rng, width: int = 40, height: int = 32):
-    """A preprocessed capture by hand: one camera, one frame in every split; returns (capture dir, renders dir)."""
+def _tiny_capture(root, rng, width: int = 40, height: int = 32, frames: int = 1, missing: tuple[int, ...] = (),
+                  fps: float = 10.0):
+    """A preprocessed capture by hand: one camera, `frames` frames in every split, no image or mask for the
+    `missing` frames (rendered all the same); returns (capture dir, renders dir)."""
     capture = root / "capture"
     (capture / "images" / "cam00").mkdir(parents=True)
     (capture / "masks" / "cam00").mkdir(parents=True)
     write_json(capture / "cameras.json", {"cam00": {"K": np.eye(3).tolist(), "R": np.eye(3).tolist(),
                                                     "T": [0.0, 0.0, 2.0], "width": width, "height": height}})
-    SmplxParams(np.zeros((1, 55, 3)), np.zeros(10), np.zeros((1, 10)), np.zeros((1, 3))).save(capture / "smplx.npz")
-    part = {"cameras": ["cam00"], "frames": [0]}
+    SmplxParams(np.zeros((frames, 55, 3)), np.zeros(10), np.zeros((frames, 10)),
+                np.zeros((frames, 3))).save(capture / "smplx.npz")
+    part = {"cameras": ["cam00"], "frames": list(range(frames))}
     (capture / "split.json").write_text(json.dumps({"train": part, "novel_view": part, "novel_pose": part}))
     (capture / "report.json").write_text(json.dumps({"background": [0, 0, 0]}))
-    truth = rng.random((height, width, 3))
     mask = np.zeros((height, width), np.uint8)
     mask[4:-4, 6:-6] = 255
-    write_png(capture / "images" / "cam00" / "00000000.png", truth)
-    cv2.imwrite(str(capture / "masks" / "cam00" / "00000000.png"), mask)
     renders = root / "renders" / "novel_view"
     (renders / "lod0" / "cam00").mkdir(parents=True)
-    write_png(renders / "lod0" / "cam00" / "00000000.png", rng.random((height, width, 3)))
-    write_json(renders / "lod0" / "timing.json", {"splats": 100, "model_mb": 1.0, "seconds_per_frame": 0.1,
-                                                  "fps": 10.0, "device": "cpu"})
+    for frame in range(frames):
+        if frame not in missing:
+            write_png(capture / "images" / "cam00" / f"{frame:08d}.png", rng.random((height, width, 3)))
+            cv2.imwrite(str(capture / "masks" / "cam00" / f"{frame:08d}.png"), mask)
+        write_png(renders / "lod0" / "cam00" / f"{frame:08d}.png", rng.random((height, width, 3)))
+    write_json(renders / "lod0" / "timing.json", {"splats": 100, "model_mb": 1.0, "seconds_per_frame": 1 / fps,
+                                                  "fps": fps, "device": "cpu"})
     return capture, renders
+
+
+def _strict_json(path):
+    """json.loads that refuses NaN and Infinity, as a standard-conforming parser does."""
+    def refuse(token):
+        raise ValueError(f"{path}: non-standard JSON constant {token}")
+
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+def test_evaluate_small_set_gets_a_flagged_fid_and_strict_json(tmp_path, empty_hub, rng):
+    """Six frames, one missing from the capture: FID over the 5 scored views (checked against np.cov statistics
+    of the network's features), flagged below fid_min_images; LPIPS weights absent and a NaN render time are
+    written as null, and the tables show n/a for them and `FID (N=5, biased)`."""
+    from pig.stages.evaluate import main as evaluate
+    from pig.stages.tables import make_tables
+
+    torch.manual_seed(0)
+    tiny = _TinyInception()
+    torch.jit.script(tiny).save(str(tmp_path / "inception-2015-12-05.pt"))
+    capture, renders = _tiny_capture(tmp_path, rng, frames=6, missing=(2,), fps=math.nan)
+    profile = tmp_path / "profile.yaml"
+    profile.write_text(yaml.safe_dump({"evaluate": {"inception_weights": str(tmp_path / "inception-2015-12-05.pt"),
+                                                    "fid_min_images": 2000, "batch_size": 2, "device": "cpu"}}))
+    metrics = tmp_path / "results" / "dna" / "0165_08" / "pig" / "metrics"
+    assert evaluate(["--capture", str(capture), "--renders", str(renders), "--split", "novel_view",
+                     "--output", str(metrics), "--profile", str(profile)]) == 0
+
+    summary = _strict_json(metrics / "novel_view_lod0.json")
+    assert summary["lpips"] is None and summary["fps"] is None and "LPIPS is NaN" in summary["lpips_note"]
+    assert summary["images"] == summary["fid_images"] == 5 and summary["fid_min_images"] == 2000
+    assert summary["fid_note"] == "FID over 5 images (< 2000): biased high, compare only at equal N"
+    assert len(pd.read_csv(metrics / "novel_view_lod0.csv")) == 5
+    # Reference: the network on all five pairs at once, statistics by np.cov.
+    kept = [f"{frame:08d}.png" for frame in (0, 1, 3, 4, 5)]
+    mask = cv2.imread(str(capture / "masks" / "cam00" / kept[0]), cv2.IMREAD_GRAYSCALE)[..., None] > 127
+    as_batch = lambda images: torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2)  # noqa: E731
+    fake = as_batch([read_png(renders / "lod0" / "cam00" / name) for name in kept])
+    real = as_batch([read_png(capture / "images" / "cam00" / name) * mask for name in kept])
+    features = [InceptionFeatures(tmp_path / "inception-2015-12-05.pt")(x).double().numpy() for x in (fake, real)]
+    expected = frechet_distance(*(v for f in features for v in (f.mean(0), np.cov(f, rowvar=False))))
+    assert expected > 0 and summary["fid"] == pytest.approx(expected, rel=1e-6)
+
+    tables = tmp_path / "results" / "tables"
+    make_tables("dna", [metrics / "novel_view_lod0.json"], [], ["pig"], tables)
+    main = pd.read_csv(tables / "dna.csv").set_index("variant")
+    assert main.loc["pig", "novel_view_fid"] == pytest.approx(summary["fid"], rel=1e-5)
+    assert main.loc["pig", "novel_view_fid_images"] == 5 and main.loc["pig", "novel_view_fid_biased"] == 1
+    assert math.isnan(main.loc["pig", "novel_view_lpips_alex"])
+    assert all(main[c].dtype.kind in "fi" for c in main.columns if c.startswith("novel_"))  # numeric CSV columns
+    fid_text = f"{summary['fid']:.3f}" if summary["fid"] < 10 else f"{summary['fid']:.2f}"
+    markdown = (tables / "dna.md").read_text()
+    row = next(line for line in markdown.splitlines() if line.startswith("| pig |"))
+    assert f"| n/a | {fid_text} (N=5, biased) |" in row
+    assert "novel_view_fid_images" not in markdown and "- FID over 5 images (< 2000): biased high" in markdown
+    lod = (tables / "dna_lod.md").read_text()
+    assert f"{fid_text} (N=5, biased)" in lod and "| n/a | cpu |" in lod  # fps null -> n/a
+
+
+def test_evaluate_without_inception_weights_leaves_fid_missing(tmp_path, empty_hub, rng):
+    from pig.stages.evaluate import main as evaluate
+
+    capture, renders = _tiny_capture(tmp_path, rng, frames=3)
+    profile = tmp_path / "profile.yaml"
+    profile.write_text(yaml.safe_dump({"evaluate": {"inception_weights": str(tmp_path / "absent.pt"), "device": "cpu"}}))
+    metrics = tmp_path / "metrics"
+    assert evaluate(["--capture", str(capture), "--renders", str(renders), "--split", "novel_view",
+                     "--output", str(metrics), "--profile", str(profile)]) == 0
+    summary = _strict_json(metrics / "novel_view_lod0.json")
+    assert summary["fid"] is None and summary["fid_images"] == 3
+    assert summary["fid_note"] == (f"FID is NaN: FID Inception network: configured weights file {tmp_path / 'absent.pt'} "
+                                   "does not exist (expected inception-2015-12-05.pt)")
 
 
 def test_evaluate_with_vgg_and_the_tables_name_the_backbone(tmp_path, empty_hub, rng):
@@ -334,3 +412,30 @@ def test_tables_refuse_mixed_or_unnamed_lpips_backbones(tmp_path):
     with pytest.raises(ValueError, match=r"s2/pig/metrics/novel_view_lod0\.json: summary does not name its LPIPS backbone"):
         make_tables("dna", unnamed, [], ["pig"], out)
     assert not out.exists()
+
+
+def test_tables_state_the_smallest_fid_set_and_refuse_a_fid_without_its_count(tmp_path):
+    from pig.stages.tables import make_tables
+
+    def scored(subject: str, **fid):
+        path = _scored(tmp_path, subject, "alex")
+        write_json(path, {**json.loads(path.read_text()), "fid_min_images": 2000, **fid})
+        return path
+
+    full, short = scored("s0", fid=10.0, fid_images=2000), scored("s1", fid=12.0, fid_images=1999)
+    out = tmp_path / "tables"
+    make_tables("dna", [full, short], [], ["pig"], out)
+    main = pd.read_csv(out / "dna.csv").set_index("variant")
+    assert main.loc["pig", "novel_view_fid"] == pytest.approx(11.0)
+    assert main.loc["pig", "novel_view_fid_images"] == 1999 and main.loc["pig", "novel_view_fid_biased"] == 1
+    assert "| 11.00 (N=1999, biased) |" in (out / "dna.md").read_text()
+    assert math.isnan(main.loc["pig", "novel_pose_fid_images"])  # no novel-pose summary, no count
+    make_tables("dna", [full], [], ["pig"], out)
+    assert "| 10.00 (N=2000) |" in (out / "dna.md").read_text()
+    assert pd.read_csv(out / "dna.csv").set_index("variant").loc["pig", "novel_view_fid_biased"] == 0
+
+    older = _scored(tmp_path, "s2", "alex")
+    write_json(older, {**json.loads(older.read_text()), "fid": 10.0})
+    with pytest.raises(ValueError, match=r"s2/pig/metrics/novel_view_lod0\.json: summary has a FID but not the image "
+                                         r"count it was computed over \(no fid_images / fid_min_images"):
+        make_tables("dna", [full, older], [], ["pig"], out)

@@ -1,4 +1,5 @@
-"""The two application forms against the closed-form update x - lr A^-2 g; the solve's gradient; Adam and UniformAdam."""
+"""The two application forms against the closed-form update x - lr A^-2 g (up to lambda = 1e8); the solve's gradient;
+the substitution's exact origin and state dict; Adam and UniformAdam."""
 import numpy as np
 import pytest
 import torch
@@ -137,17 +138,157 @@ def test_uniform_adam_matches_a_float64_reference_loop():
 def test_preconditioned_tensor_stores_and_returns_values():
     system, x0 = lattice_case()
     sub = PreconditionedTensor(x0, system, "substitute")
-    torch.testing.assert_close(sub.param.detach(), system.apply(x0))
-    torch.testing.assert_close(sub().detach(), x0, rtol=1e-12, atol=1e-12)
+    assert torch.equal(sub.param.detach(), torch.zeros_like(x0)) and torch.equal(sub.origin, x0)
+    assert torch.equal(sub().detach(), x0)
     new = torch.randn_like(x0)
     sub.set_value(new)
-    torch.testing.assert_close(sub().detach(), new, rtol=1e-12, atol=1e-12)
+    assert torch.equal(sub().detach(), new)
     plain = PreconditionedTensor(x0, None, "none")
     assert plain() is plain.param
     with pytest.raises(ValueError, match="needs a linear system"):
         PreconditionedTensor(x0, None, "filter")
     with pytest.raises(ValueError, match="form"):
         PreconditionedTensor(x0, system, "sobolev")
+
+
+# Stiff cases: (dense float64 Laplacian, system for a lambda, initial value x0 in float32, solver accuracy).
+# x0 holds metres with an offset, as the anchors' initial positions do.
+def _knn_laplacian_dense():
+    return knn_laplacian(np.random.default_rng(2).normal(size=(40, 3)), 6)
+
+
+def _lattice_laplacian_dense(shape):
+    """(A - I) of the lattice stencil at lambda = 1, column by column: the integer Laplacian, exactly."""
+    n = int(np.prod(shape))
+    system = LatticeSystem(shape, 1.0)
+    eye = torch.eye(n, dtype=torch.float64)
+    return (torch.stack([system.apply(e.reshape(shape)).reshape(-1) for e in eye], dim=1) - eye).numpy()
+
+
+STIFF = {
+    "knn_factorized": lambda lam: (FactorizedSystem(_knn_laplacian_dense(), lam), (40, 3), 1e-7),
+    "knn_cg": lambda lam: (CGSystem(_knn_laplacian_dense(), lam, tol=1e-6, max_iter=2000), (40, 3), 1e-6),
+    "lattice": lambda lam: (LatticeSystem((3, 4, 2), lam), (2, 3, 4, 2), 1e-6),
+}
+
+
+def _stiff_case(name, lam):
+    system, shape, accuracy = STIFF[name](lam)
+    lap = _lattice_laplacian_dense(shape[-3:]) if name == "lattice" else _knn_laplacian_dense().toarray()
+    gen = torch.Generator().manual_seed(3)
+    x0 = (torch.randn(shape, generator=gen, dtype=torch.float64) + torch.tensor([0.5, 1.0, -2.0])[: shape[-1]]).float()
+    return system, lap, x0, accuracy
+
+
+def _eigen_inverse_power(lap: np.ndarray, lam: float, b: torch.Tensor, power: int) -> torch.Tensor:
+    """A^-power b in float64 from L's eigendecomposition (accurate for any lambda); A acts on the leading
+    anchor axis of (N, C) tensors, or on the last three axes of (C, X, Y, Z) lattice tensors."""
+    mu, v = np.linalg.eigh(lap)
+    mu = np.where(mu < 1e-9, 0.0, mu)
+    lattice = b.dim() == 4
+    cols = b.double().reshape(b.shape[0], -1).T.numpy() if lattice else b.double().numpy()
+    out = v @ ((v.T @ cols) / ((1.0 + lam * mu) ** power)[:, None])
+    return torch.from_numpy(out.T.reshape(b.shape) if lattice else out)
+
+
+@pytest.mark.parametrize("case", STIFF)
+@pytest.mark.parametrize("lam", [0.0, 1.0, 8.0, 1e6, 1e8])
+def test_initial_value_is_exact_for_any_lambda(case, lam):
+    system, _, x0, _ = _stiff_case(case, lam)
+    p = PreconditionedTensor(x0, system, "substitute")
+    with torch.no_grad():
+        assert torch.equal(p(), x0)
+
+
+@pytest.mark.parametrize("solver", ["factorized", "cg"])
+def test_configured_anchors_start_exactly_at_their_initial_positions(solver):
+    """The fit's path (precondition_anchors from the profile section) at anchor lambda 1e8, float32 metres."""
+    x_init = (torch.rand(300, 3, generator=torch.Generator().manual_seed(5)) * torch.tensor([0.6, 1.8, 0.3])).float()
+    cfg = PrecondConfig(anchor_lambda=1e8, knn_solver=solver)
+    anchors = precondition_anchors(x_init, cfg)
+    with torch.no_grad():
+        assert torch.equal(anchors(), x_init)
+
+
+@pytest.mark.parametrize("case", STIFF)
+@pytest.mark.parametrize("form", ["substitute", "filter"])
+@pytest.mark.parametrize("lam", [0.0, 8.0, 1e6, 1e8])
+def test_sgd_update_is_a_inverse_squared_g_up_to_lambda_1e8(case, form, lam):
+    """One float32 SGD step moves x by -lr (I + lambda L)^-2 g, against a float64 eigendecomposition.
+
+    Bound: each of the two solves errs by at most `accuracy` times its right-hand side (every eigenvalue of
+    A is >= 1), plus float32 rounding of x0 + dx."""
+    system, lap, x0, accuracy = _stiff_case(case, lam)
+    g = torch.randn(x0.shape, generator=torch.Generator().manual_seed(4)).float()
+    lr = 0.1
+    p = PreconditionedTensor(x0, system, form)
+    opt = build_optimizer("sgd", [{"params": [p.param], "lr": lr}])
+    (p() * g).sum().backward()
+    opt.step()
+    with torch.no_grad():
+        dx = p().double() - x0.double()
+    ref = -lr * _eigen_inverse_power(lap, lam, g, 2)
+    eps = torch.finfo(torch.float32).eps
+    bound = 2 * accuracy * lr * g.double().norm() + 4 * eps * (x0.double().norm() + lr * g.double().norm())
+    assert (dx - ref).norm() <= bound
+    assert ref.norm() > 10 * bound  # the update itself is resolved, not lost in the bound
+
+
+@pytest.mark.parametrize("case", ["lattice", "knn"])
+@pytest.mark.parametrize("lam", [0.0, 1.0, 8.0])
+def test_adam_path_equals_the_absolute_substitution(case, lam):
+    """Adam on u = A (x - x0) takes the same steps as the predecessor's u = A x (only u's gradients reach
+    Adam): five steps on a quadratic against that form computed densely in float64."""
+    base, x0 = CASES[case]()
+    system = LatticeSystem(base.shape, lam) if case == "lattice" else FactorizedSystem(base.laplacian, lam)
+    target = torch.randn(x0.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    a = dense_operator(system, x0)
+    lr, b1, b2, eps = 0.05, 0.9, 0.999, 1e-8
+    u = a @ x0.reshape(-1)
+    m, v = torch.zeros_like(u), torch.zeros_like(u)
+    p = PreconditionedTensor(x0, system, "substitute")
+    opt = build_optimizer("adam", [{"params": [p.param], "lr": lr}])
+    for t in range(1, 6):
+        opt.zero_grad()
+        (0.5 * (p() - target).square().sum()).backward()
+        opt.step()
+        grad_u = torch.linalg.solve(a, torch.linalg.solve(a, u) - target.reshape(-1))
+        m = b1 * m + (1 - b1) * grad_u
+        v = b2 * v + (1 - b2) * grad_u.square()
+        u = u - lr * (m / (1 - b1**t)) / ((v / (1 - b2**t)).sqrt() + eps)
+        with torch.no_grad():
+            torch.testing.assert_close(p().reshape(-1), torch.linalg.solve(a, u), rtol=1e-9, atol=1e-12)
+
+
+def test_state_dict_round_trip_and_origin_free_state_dicts():
+    system, x0 = knn_case()
+    p = PreconditionedTensor(x0, system, "substitute")
+    with torch.no_grad():
+        p.param.add_(torch.randn(x0.shape, dtype=x0.dtype, generator=torch.Generator().manual_seed(7)))
+        value = p().clone()
+    state = p.state_dict()
+    assert set(state) == {"param", "origin"}
+    other = PreconditionedTensor(torch.zeros_like(x0), system, "substitute")  # a zero start keeps no origin ...
+    assert set(other.state_dict()) == {"param"} and other.origin is None
+    other.load_state_dict(state)  # ... and adopts the stored one
+    assert torch.equal(other().detach(), value)
+    # A state dict without an origin (zero start, or written when u = A x was stored) means x = A^-1 u.
+    old = {"param": system.apply(value)}
+    p.load_state_dict(old)
+    assert p.origin is None
+    torch.testing.assert_close(p().detach(), value, rtol=1e-12, atol=1e-12)
+
+
+def test_bake_freezes_the_current_value():
+    system, x0 = knn_case()
+    p = PreconditionedTensor(x0, system, "substitute")
+    with torch.no_grad():
+        p.param.add_(0.1)
+        value = p().clone()
+    p.bake()
+    assert p.form == "none" and p.origin is None and not p.param.requires_grad
+    assert set(p.state_dict()) == {"param"}
+    assert torch.equal(p(), value)
 
 
 def test_cg_substitution_uses_separate_warm_starts():

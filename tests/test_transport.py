@@ -111,3 +111,75 @@ def test_degenerate_and_flipped_triangles_give_finite_proper_rotations():
     torch.testing.assert_close(torch.linalg.det(rot), torch.ones(1, 6, dtype=torch.float64), atol=1e-9, rtol=0)
     rot.sum().backward()
     assert torch.isfinite(tris.grad).all()
+
+
+def _mesh_with_degenerate_triangles(dtype=torch.float64):
+    """An ellipsoid mesh where one triangle is collinear, one has three coincident corners (which leaves
+    its three edge neighbours with two coincident corners each): (vertices, faces, {name: face id})."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    vertices = sphere.vertices * np.array([0.3, 0.9, 0.2])
+    faces = np.asarray(sphere.faces)
+    collinear = 0
+    a, b, c = faces[collinear]
+    vertices[c] = 0.3 * vertices[a] + 0.7 * vertices[b]
+    touching = np.isin(faces, faces[collinear]).any(axis=1)
+    coincident = int(np.flatnonzero(~touching)[5])
+    vertices[faces[coincident]] = vertices[faces[coincident]].mean(axis=0)
+    shares_edge = (np.isin(faces, faces[coincident]).sum(axis=1) == 2)
+    named = {"collinear": collinear, "coincident": coincident}
+    named.update({f"two_coincident_{i}": int(f) for i, f in enumerate(np.flatnonzero(shares_edge))})
+    return torch.tensor(vertices, dtype=dtype), torch.tensor(faces, dtype=torch.long), named
+
+
+def test_degenerate_triangles_are_what_the_mesh_says():
+    vertices, faces, named = _mesh_with_degenerate_triangles()
+    tri = vertices[faces[list(named.values())]]
+    area = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).norm(dim=-1)
+    assert len(named) == 5 and area.max() < 1e-15
+    assert (tri[1] == tri[1, 0]).all()  # coincident corners
+    assert (tri[0, 1] - tri[0, 0]).norm() > 0.1  # collinear, not coincident
+
+
+HALF_TURN_AXES = [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 1], [0.2, -0.5, 0.9]]
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+def test_degenerate_triangles_rotate_with_the_body(rng, dtype, tol):
+    """Half turns about several axes and a generic rotation, plus a shift: anchors on zero-area triangles
+    (collinear, coincident corners) move rigidly, with proper rotations and finite gradients."""
+    vertices, faces, named = _mesh_with_degenerate_triangles(dtype)
+    degenerate = torch.tensor(list(named.values()))
+    face_ids = torch.cat([degenerate.repeat_interleave(4), torch.tensor(rng.integers(0, faces.shape[0], 20))])
+    bary = torch.tensor(rng.dirichlet(np.ones(3), len(face_ids)))
+    x_init = barycentric_points(vertices[None], faces, face_ids, bary)[0]
+    anchors = x_init + torch.tensor(rng.normal(scale=0.1, size=x_init.shape), dtype=dtype)
+    axes = torch.tensor(HALF_TURN_AXES, dtype=torch.float64)
+    generic = torch.tensor([[0.3, -2.5, 1.1]], dtype=torch.float64)
+    axis_angles = torch.cat([np.pi * axes / axes.norm(dim=1, keepdim=True), generic])
+    q = axis_angle_to_matrix(axis_angles).to(dtype)
+    shift = torch.tensor(rng.normal(size=(len(q), 3)), dtype=dtype)
+    posed = (vertices[None] @ q.transpose(1, 2) + shift[:, None]).requires_grad_(True)
+    moved, rot, _ = _run(vertices, posed, faces, face_ids, bary, anchors)
+    expected = anchors[None] @ q.transpose(1, 2) + shift[:, None]
+    assert torch.isfinite(moved).all() and torch.isfinite(rot).all()
+    assert (moved - expected).abs().max() < tol
+    assert (rot - q[:, None]).abs().max() < tol
+    det = torch.linalg.det(rot.double())
+    torch.testing.assert_close(det, torch.ones_like(det), atol=tol, rtol=0)
+    moved.sum().backward()
+    assert torch.isfinite(posed.grad).all()
+
+
+def test_degenerate_frames_follow_the_surface():
+    """The borrowed normal is the surface's: on the ellipsoid it points outwards, like the neighbours'."""
+    vertices, faces, named = _mesh_with_degenerate_triangles()
+    ids = torch.tensor(list(named.values()))
+    frames = surface_frames(vertices[None], faces, ids)[0]
+    centroids = vertices[faces[ids]].mean(dim=1)
+    outward = centroids / torch.tensor([0.3, 0.9, 0.2], dtype=torch.float64) ** 2  # ellipsoid gradient
+    cosine = (frames[:, :, 2] * outward).sum(-1) / outward.norm(dim=-1)
+    assert (cosine > 0.8).all()
+    eye = torch.eye(3, dtype=torch.float64).expand(len(ids), 3, 3)
+    torch.testing.assert_close(frames.transpose(1, 2) @ frames, eye, atol=1e-12, rtol=0)

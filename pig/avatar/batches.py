@@ -1,15 +1,27 @@
-"""Training batches: K random timesteps x V random views of the train split, images held as uint8 tensors.
+"""Training views streamed from a capture with bounded memory: one random LOD, K timesteps x V views per iteration.
 
-The sampling of Section 3.5 / 3.6 (4 views x 5 timesteps per iteration); no paper equation.
+The sampling of Section 3.5 / 3.6 (4 views x 5 timesteps per iteration); no paper equation. An iteration's
+picks are a function of (seed, iteration) alone, so batches staged ahead of the training loop, and the
+batches of a resumed fit, are exactly those an uninterrupted fit draws.
+
+Views are decoded by a pool of threads (OpenCV's decoding releases the GIL) into staging buffers: uint8 RGB
+and bool masks. On CUDA the buffers are pinned and copied with non_blocking=True: the host goes on launching
+the iteration's work while the copy runs (on the compute stream, ahead of that work). A bounded LRU cache
+keeps recently decoded views. Decoded views in host memory at any time, whatever the capture's size: at
+most `cache_views` in the cache plus the staging slots of the batches staged and not yet handed out,
+(prefetch + 1) x V x K while training (`ViewSource.peak_held` counts both), plus one view in transit per
+decode thread and the batch being trained on.
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+import threading
+import time
+from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 
 @dataclass
@@ -26,49 +38,182 @@ class ViewBatch:
     height: int
 
 
-class CaptureViews:
-    """Images, masks and cameras of (camera, frame) pairs of a capture, loaded once onto `device`."""
+@dataclass
+class Picks:
+    """What one iteration trains on: a level of detail and (timestep, cameras) pairs."""
 
-    def __init__(self, capture, cameras: list[str], frames: list[int], device: torch.device | str, desc: str = "load views"):
+    lod: int
+    steps: list[tuple[int, list[str]]]
+
+
+@dataclass
+class TrainingBatch:
+    """The views of one iteration, on the training device."""
+
+    iteration: int
+    lod: int
+    timesteps: list[int]
+    views: list[list[ViewBatch]]  # per timestep, grouped by image size
+    wait_s: float  # how long the caller blocked for this batch
+
+
+@dataclass(frozen=True)
+class Sampler:
+    """Picks of an iteration from (seed, iteration) alone: one LOD of `levels`, `timesteps` distinct timesteps of
+    those with views, each with `views` distinct cameras of those that see it (fewer when fewer exist)."""
+
+    seed: int
+    levels: int
+    cameras: tuple[tuple[str, ...], ...]  # per timestep, the cameras with a view of it
+    timesteps: int
+    views: int
+
+    def picks(self, iteration: int) -> Picks:
+        rng = np.random.default_rng([self.seed, iteration])
+        lod = int(rng.integers(self.levels))
+        seen = [t for t, cams in enumerate(self.cameras) if cams]
+        steps = [seen[i] for i in rng.permutation(len(seen))[: self.timesteps]]
+        chosen = []
+        for step in steps:
+            cams = self.cameras[step]
+            chosen.append((step, [cams[i] for i in rng.permutation(len(cams))[: self.views]]))
+        return Picks(lod, chosen)
+
+
+@dataclass
+class _Staged:
+    """Views being decoded into staging buffers: `layout` lists, per timestep, (size, cameras, first row)."""
+
+    layout: list[tuple[int, list[tuple[tuple[int, int], list[str], int]]]]
+    buffers: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]]  # (width, height) -> (n, H, W, 3) uint8, (n, H, W) bool
+    futures: list[Future]
+    count: int
+
+
+class ViewSource:
+    """Views of a capture's `frames` (indexed by timestep), decoded by `workers` threads through an LRU cache of
+    at most `cache_views` uint8 views, delivered as `ViewBatch`es on `device`.
+
+    Reads through `capture` (load it with cache_mb=0: this cache takes the place of the capture's own). A
+    decoding error (a corrupt or missing image: CaptureError naming the file) is raised by `views` for the
+    batch that needs the view. Close it (or use it as a context manager) to stop the threads.
+    """
+
+    def __init__(self, capture, frames: list[int], device: torch.device | str, cache_views: int, workers: int):
         self.capture = capture
-        self.cameras = list(cameras)
         self.frames = list(frames)
         self.device = torch.device(device)
-        self.viewmats = {c: torch.as_tensor(capture.cameras[c].viewmat(), dtype=torch.float32, device=self.device) for c in cameras}
-        self.Ks = {c: torch.as_tensor(capture.cameras[c].K, dtype=torch.float32, device=self.device) for c in cameras}
-        pairs = [(c, f) for f in self.frames for c in self.cameras]
+        self.cache_views = cache_views
+        self._pin = self.device.type == "cuda"
+        self._viewmats = {c: torch.as_tensor(cam.viewmat(), dtype=torch.float32, device=self.device)
+                          for c, cam in capture.cameras.items()}
+        self._Ks = {c: torch.as_tensor(cam.K, dtype=torch.float32, device=self.device) for c, cam in capture.cameras.items()}
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="pig-views")
+        self._lock = threading.Lock()
+        self._cache: OrderedDict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()  # -> (RGB, mask)
+        self._staged_views = 0  # staging slots of batches staged and not yet handed out
+        self.peak_cached = 0  # most views the cache held at once
+        self.peak_held = 0  # most views the cache and the staging slots held at once
+        self.decoded = 0
+        self.hits = 0
 
-        def load(pair):
-            cam, frame = pair
-            image = np.round(capture.image(cam, frame) * 255).astype(np.uint8)
-            return torch.from_numpy(image), torch.from_numpy(np.asarray(capture.mask(cam, frame), dtype=bool))
+    def __enter__(self) -> "ViewSource":
+        return self
 
-        # Decoding releases the GIL (OpenCV), so threads load in parallel.
-        with ThreadPoolExecutor(max_workers=min(16, max(1, len(pairs)))) as pool:
-            loaded = list(tqdm(pool.map(load, pairs), total=len(pairs), desc=desc, leave=False))
-        self.images = {pair: (img.to(self.device), msk.to(self.device)) for pair, (img, msk) in zip(pairs, loaded)}
+    def __exit__(self, *exc) -> None:
+        self.close()
 
-    def batch(self, timestep: int, cameras: list[str]) -> list[ViewBatch]:
-        """The views of frame `self.frames[timestep]` seen by `cameras`, grouped by image size."""
-        frame = self.frames[timestep]
-        groups: dict[tuple[int, int], list[str]] = {}
-        for cam in cameras:
-            h, w = self.images[(cam, frame)][0].shape[:2]
-            groups.setdefault((w, h), []).append(cam)
+    def close(self) -> None:
+        """Cancel staged decodes not yet started and wait for the running ones."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def stage(self, steps: list[tuple[int, list[str]]]) -> _Staged:
+        """Start decoding the views of (timestep, cameras) pairs; returns at once."""
+        sizes: dict[tuple[int, int], int] = {}  # views per image size
+        layout = []
+        for step, cameras in steps:
+            groups: dict[tuple[int, int], list[str]] = {}
+            for cam in cameras:
+                groups.setdefault((self.capture.cameras[cam].width, self.capture.cameras[cam].height), []).append(cam)
+            entry = []
+            for size, cams in groups.items():
+                entry.append((size, cams, sizes.get(size, 0)))
+                sizes[size] = sizes.get(size, 0) + len(cams)
+            layout.append((step, entry))
+        buffers = {(w, h): (torch.empty((n, h, w, 3), dtype=torch.uint8, pin_memory=self._pin),
+                            torch.empty((n, h, w), dtype=torch.bool, pin_memory=self._pin)) for (w, h), n in sizes.items()}
+        count = sum(sizes.values())
+        with self._lock:
+            self._staged_views += count
+            self.peak_held = max(self.peak_held, len(self._cache) + self._staged_views)
+        slots = {size: (rgb.numpy(), mask.numpy()) for size, (rgb, mask) in buffers.items()}
+        futures = [self._pool.submit(self._fill, cam, self.frames[step], slots[size][0][first + i], slots[size][1][first + i])
+                   for step, entry in layout for size, cams, first in entry for i, cam in enumerate(cams)]
+        return _Staged(layout, buffers, futures, count)
+
+    def views(self, staged: _Staged) -> list[list[ViewBatch]]:
+        """Wait for staged views; per timestep, one `ViewBatch` per image size, on the device."""
+        try:
+            for future in staged.futures:
+                future.result()  # re-raises a decoding error of the worker, message and all
+        except BaseException:
+            for future in staged.futures:
+                future.cancel()
+            raise
+        finally:
+            with self._lock:
+                self._staged_views -= staged.count
+        images, masks = {}, {}
+        for size, (rgb, mask) in staged.buffers.items():
+            images[size] = rgb.to(self.device, non_blocking=True).float().div_(255)
+            masks[size] = mask.to(self.device, non_blocking=True)
         out = []
-        for (w, h), cams in groups.items():
-            images = torch.stack([self.images[(c, frame)][0] for c in cams]).float() / 255
-            masks = torch.stack([self.images[(c, frame)][1] for c in cams])
-            out.append(ViewBatch(timestep, cams, torch.stack([self.viewmats[c] for c in cams]),
-                                 torch.stack([self.Ks[c] for c in cams]), images, masks, w, h))
+        for step, entry in staged.layout:
+            out.append([ViewBatch(step, cams, torch.stack([self._viewmats[c] for c in cams]), torch.stack([self._Ks[c] for c in cams]),
+                                  images[size][first:first + len(cams)], masks[size][first:first + len(cams)], *size)
+                        for size, cams, first in entry])
         return out
 
+    def _fill(self, camera: str, frame: int, rgb: np.ndarray, mask: np.ndarray) -> None:
+        """Write the view's RGB (H, W, 3) and mask (H, W) into the staging slots, from the cache or decoded."""
+        key = (camera, frame)
+        with self._lock:
+            view = self._cache.get(key)
+            if view is not None:
+                self._cache.move_to_end(key)
+                self.hits += 1
+        if view is not None:
+            rgb[...], mask[...] = view
+            return
+        rgb[...] = self.capture._read("images", camera, frame)
+        mask[...] = self.capture.mask(camera, frame)
+        view = (rgb.copy(), mask.copy()) if self.cache_views > 0 else None
+        with self._lock:
+            self.decoded += 1
+            if view is None:
+                return
+            self._cache[key] = view
+            self._cache.move_to_end(key)
+            while len(self._cache) > self.cache_views:
+                self._cache.popitem(last=False)
+            self.peak_cached = max(self.peak_cached, len(self._cache))
+            self.peak_held = max(self.peak_held, len(self._cache) + self._staged_views)
 
-def sample_batch(generator: torch.Generator, num_timesteps: int, cameras: list[str], timesteps: int, views: int) -> list[tuple[int, list[str]]]:
-    """K distinct random timesteps, each with V distinct random cameras (fewer when fewer exist)."""
-    steps = torch.randperm(num_timesteps, generator=generator)[: min(timesteps, num_timesteps)].tolist()
-    picks = []
-    for step in steps:
-        order = torch.randperm(len(cameras), generator=generator)[: min(views, len(cameras))].tolist()
-        picks.append((step, [cameras[i] for i in order]))
-    return picks
+
+class TrainingBatches:
+    """The batch of each iteration of [start, stop), staged `prefetch` iterations ahead of the one asked for;
+    iterations are asked for in order."""
+
+    def __init__(self, source: ViewSource, sampler: Sampler, stop: int, prefetch: int):
+        self.source, self.sampler, self.stop, self.prefetch = source, sampler, stop, prefetch
+        self._staged: dict[int, tuple[Picks, _Staged]] = {}
+
+    def get(self, iteration: int) -> TrainingBatch:
+        started = time.perf_counter()
+        for ahead in range(iteration, min(iteration + self.prefetch + 1, self.stop)):
+            if ahead not in self._staged:
+                picks = self.sampler.picks(ahead)
+                self._staged[ahead] = (picks, self.source.stage(picks.steps))
+        picks, staged = self._staged.pop(iteration)
+        views = self.source.views(staged)
+        return TrainingBatch(iteration, picks.lod, [step for step, _ in picks.steps], views, time.perf_counter() - started)

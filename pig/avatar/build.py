@@ -14,6 +14,7 @@ import torch
 from numpy.lib import format as npy_format
 
 from pig.body.model import NUM_JOINTS, REQUIRED_KEYS, BodyModel, _dense
+from pig.body.npz import read_npz
 from pig.body.params import SmplxParams
 from pig.config import from_dict
 from pig.field.latent_grid import FieldConfig, LatentGrid
@@ -38,8 +39,9 @@ def body_model_npz(path: Path) -> bytes:
     path = Path(path)
     if not _holds_objects(path):
         return path.read_bytes()
-    with np.load(path, allow_pickle=True) as data:  # the user's model file, read as `BodyModel.from_file` does
-        arrays = {key: _dense(data[key]) for key in BODY_MODEL_KEYS if key in data.files}
+    # Pickled members are rebuilt only into arrays and sparse matrices, as `BodyModel.from_file` reads them.
+    arrays = {key: _dense(value) for key, value in
+              read_npz(path, ValueError, "an SMPL-X model npz", BODY_MODEL_KEYS, pickled=BODY_MODEL_KEYS).items()}
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
     return buffer.getvalue()

@@ -21,8 +21,10 @@ from .build import build_avatar
 FORMAT_VERSION = 2  # 1 held numpy arrays, which only an unrestricted (code-running) unpickler reads
 AVATAR_KEYS = ("version", "spec", "model")
 TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteration", "wall_s", "log", "settings")
-# Settings that may change between runs of one fit: run length, logging and checkpoint cadence, memory bands.
-FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes"}, "rasterizer": {"max_pairs"}}
+# Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading,
+# memory bands.
+FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers"},
+                 "rasterizer": {"max_pairs"}}
 SPEC_SECTIONS = ("avatar", "field", "precond")  # profile sections recorded in the spec
 
 

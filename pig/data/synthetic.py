@@ -6,7 +6,6 @@ per-frame meshes kept for geometry error; see DESIGN.md section 4.
 from __future__ import annotations
 
 import functools
-import json
 import multiprocessing
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +16,9 @@ import torch
 from tqdm import tqdm
 
 from pig.body.model import BodyModel
+from pig.body.npz import read_npz
 from pig.body.standin import make_standin_arrays
+from pig.stages._io import write_json
 from pig.stages._outputs import build_dir, claim_dir
 
 from .raw import RawCamera
@@ -70,8 +71,7 @@ def body_model_arrays(cfg: SyntheticConfig) -> dict[str, np.ndarray]:
     path = Path(cfg.body_model)
     if not path.is_file():
         raise SyntheticError(f"synthetic.body_model: {path} does not exist (expected an SMPL-X model npz)")
-    with np.load(path, allow_pickle=True) as data:
-        return {k: data[k] for k in data.files}
+    return read_npz(path, SyntheticError, "an SMPL-X model npz", pickled=("J_regressor",))
 
 
 @dataclass
@@ -225,7 +225,7 @@ def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = Fals
         for kind in ("images", "masks"):
             for camera in scene.cameras:
                 (tmp / kind / camera.name).mkdir(parents=True)
-        (tmp / "calibration.json").write_text(json.dumps(calibration_json(scene.cameras), indent=1))
+        write_json(tmp / "calibration.json", calibration_json(scene.cameras))
         np.savez(tmp / "smpl_params.npz", **scene.thuman_params)
         np.savez_compressed(tmp / "body_model.npz", **scene.model_arrays)
         np.savez_compressed(

@@ -2,18 +2,33 @@
 
 The anchor-level system of the KNN preconditioner (Eq. 5); both expose solve(b, slot) and apply(x).
 
+Both compute in float64 whatever the tensors' dtype, and return the right-hand side's dtype. A float32
+residual cannot resolve this system at large lambda: A x = x + lambda L x is a small difference of terms
+of size lambda |L| |x|, and a float32 1 + lambda d_i loses the identity. (Float32 CG on 100k anchors
+stopped as converged 7e-4 |b| off at lambda = 1e6, tol 1e-5, and at lambda = 1e8 ran to its cap 2e4 |b|
+off, neither with a warning.) `apply` is matrix-free, x + lambda (L x) with the sparse Laplacian L, so
+the identity is never rounded into lambda L's diagonal. Every eigenvalue of A is at least 1, so the
+error of any x is bounded by its residual: |x - A^-1 b| <= |b - A x|.
+
 `FactorizedSystem` factorises A once with SuperLU (scipy.sparse.linalg.splu; symmetric mode,
 no pivoting off the diagonal, minimum-degree ordering on A + A^T, which suits an SPD matrix) and
-reuses it for every solve. It is exact to rounding in float64. SuperLU runs on the CPU: a CUDA or
-float32 right-hand side is copied to the CPU in float64, solved, and copied back (one host round
-trip per solve; the 100k x 3 solve itself takes about 0.04 s, benchmarks/NOTES.md).
+reuses it for every solve; its error against a dense float64 solve is about 1e-16 lambda |b|, below
+1e-7 |b| up to lambda = 1e8 (tests/test_knn_precond.py). SuperLU runs on the CPU: a CUDA or float32
+right-hand side is copied to the CPU in float64, solved, and copied back (one host round trip per
+solve; the 100k x 3 solve itself takes about 0.04 s, benchmarks/NOTES.md).
 
-`CGSystem` is Jacobi-preconditioned conjugate gradients in torch on a sparse CSR matrix, on the
-right-hand side's device, every column solved at once. Each `slot` (e.g. "forward", "backward")
-keeps its last solution as the next warm start, since successive optimisation steps solve nearby
-systems. It stops when every column's relative residual |b - A x| / |b| <= tol, or after max_iter
-iterations; `last_iterations` and `last_residual` record the latest solve, and reaching the cap
-emits a `CGNotConverged` warning naming the residual reached.
+`CGSystem` is Jacobi-preconditioned conjugate gradients in torch on the right-hand side's device, every
+column solved at once. Each `slot` (e.g. "forward", "backward") keeps its last solution as the next warm
+start, since successive optimisation steps solve nearby systems. It stops when every column's relative
+residual |b - A x| / |b| <= tol, where the residual that CG updates is confirmed by recomputing b - A x
+(CG restarts from there if rounding made them drift apart); so each column's error is at most tol |b|,
+plus the rounding of the returned dtype. It gives up after max_iter iterations: `last_iterations` and
+`last_residual` record the latest solve, and reaching the cap emits a `CGNotConverged` warning naming
+the residual reached. At large lambda CG needs about as many iterations as L's own condition number
+asks (100k anchors, tol 1e-5: 58 at lambda = 8, ~1500 at 1e6, ~1800 at 1e8), and float64 rounding of
+A x keeps the reachable relative residual above roughly 1e-15 lambda (1e-7 to 1e-6 at lambda = 1e8; a
+smaller tol ends in the warning). Float64 costs 1.1-1.3x the float32 solve time (100k anchors,
+lambda = 8, one CPU thread, same process).
 """
 from __future__ import annotations
 
@@ -30,32 +45,60 @@ class CGNotConverged(RuntimeWarning):
     """Conjugate gradients stopped at its iteration cap above the requested tolerance."""
 
 
-def _system_matrix(laplacian: sp.spmatrix, lam: float) -> sp.csr_matrix:
-    if not math.isfinite(lam) or lam < 0:
-        raise ValueError(f"KNN system: expected a finite lambda >= 0, found {lam}")
-    laplacian = sp.csr_matrix(laplacian, dtype=np.float64)
-    if laplacian.shape[0] != laplacian.shape[1]:
-        raise ValueError(f"KNN system: expected a square Laplacian, found shape {laplacian.shape}")
-    return (sp.identity(laplacian.shape[0], format="csr") + lam * laplacian).tocsr()
-
-
 def _as_columns(b: torch.Tensor, n: int, who: str) -> torch.Tensor:
     if b.shape[0] != n:
         raise ValueError(f"{who}: expected a tensor with {n} rows (one per anchor), found shape {tuple(b.shape)}")
     return b.reshape(n, -1)
 
 
-class FactorizedSystem:
-    """A = I + lambda L, factorised once with SuperLU; `solve` is exact to rounding."""
+class _KnnSystem:
+    """A = I + lambda L for a sparse graph Laplacian L, applied matrix-free in float64."""
+
+    def __init__(self, laplacian: sp.spmatrix, lam: float, who: str):
+        if not math.isfinite(lam) or lam < 0:
+            raise ValueError(f"{who}: expected a finite lambda >= 0, found {lam}")
+        laplacian = sp.csr_matrix(laplacian, dtype=np.float64)
+        if laplacian.shape[0] != laplacian.shape[1]:
+            raise ValueError(f"{who}: expected a square Laplacian, found shape {laplacian.shape}")
+        self.laplacian = laplacian
+        self.lam = float(lam)
+        self.size = laplacian.shape[0]
+        self._who = who
+        self._torch_laplacian: dict[torch.device, torch.Tensor] = {}
+
+    def _laplacian_on(self, device: torch.device) -> torch.Tensor:
+        if device not in self._torch_laplacian:
+            lap = self.laplacian
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta", category=UserWarning)
+                self._torch_laplacian[device] = torch.sparse_csr_tensor(
+                    torch.from_numpy(lap.indptr.astype(np.int64)),
+                    torch.from_numpy(lap.indices.astype(np.int64)),
+                    torch.from_numpy(lap.data),
+                    size=lap.shape,
+                    check_invariants=True,
+                ).to(device)
+        return self._torch_laplacian[device]
+
+    def _apply64(self, x: torch.Tensor) -> torch.Tensor:
+        """A x for float64 columns x (N, C)."""
+        if self.lam == 0.0:
+            return x.clone()
+        return torch.addmm(x, self._laplacian_on(x.device), x, alpha=self.lam)
+
+    def apply(self, x: torch.Tensor) -> torch.Tensor:
+        """A x for x (N, ...) on x's device, computed in float64, returned in x's dtype."""
+        columns = _as_columns(x, self.size, f"{self._who}.apply")
+        return self._apply64(columns.to(torch.float64)).to(x.dtype).reshape(x.shape)
+
+
+class FactorizedSystem(_KnnSystem):
+    """A = I + lambda L, factorised once with SuperLU; `solve` is exact to float64 rounding."""
 
     def __init__(self, laplacian: sp.spmatrix, lam: float):
-        self.matrix = _system_matrix(laplacian, lam)
-        self.lam = float(lam)
-        self.size = self.matrix.shape[0]
-        self._lu = sla.splu(
-            self.matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-        )
-        self._torch_matrix: dict[tuple, torch.Tensor] = {}
+        super().__init__(laplacian, lam, "FactorizedSystem")
+        matrix = (sp.identity(self.size, format="csc") + self.lam * self.laplacian).tocsc()
+        self._lu = sla.splu(matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
     def solve(self, b: torch.Tensor, slot: str | None = None) -> torch.Tensor:
         """x = A^-1 b for b (N, ...), computed on the CPU in float64."""
@@ -64,71 +107,64 @@ class FactorizedSystem:
         x = self._lu.solve(np.ascontiguousarray(rhs))
         return torch.from_numpy(np.asarray(x).reshape(rhs.shape)).to(device=b.device, dtype=b.dtype).reshape(b.shape)
 
-    def apply(self, x: torch.Tensor) -> torch.Tensor:
-        """A x for x (N, ...) on x's device."""
-        return _sparse_apply(self.matrix, self._torch_matrix, x, "FactorizedSystem.apply")
 
-
-class CGSystem:
-    """A = I + lambda L solved by warm-started Jacobi-preconditioned CG (see module docstring)."""
+class CGSystem(_KnnSystem):
+    """A = I + lambda L solved by warm-started Jacobi-preconditioned CG in float64 (see module docstring)."""
 
     def __init__(self, laplacian: sp.spmatrix, lam: float, tol: float = 1e-5, max_iter: int = 200):
         if not tol > 0 or max_iter < 1:
             raise ValueError(f"CGSystem: expected tol > 0 and max_iter >= 1, found tol={tol}, max_iter={max_iter}")
-        self.matrix = _system_matrix(laplacian, lam)
-        self.lam = float(lam)
-        self.size = self.matrix.shape[0]
+        super().__init__(laplacian, lam, "CGSystem")
         self.tol = float(tol)
         self.max_iter = int(max_iter)
         self.last_iterations = 0
         self.last_residual = 0.0
-        self._torch_matrix: dict[tuple, torch.Tensor] = {}
-        self._inverse_diagonal: dict[tuple, torch.Tensor] = {}
+        self._inverse_diagonal = 1.0 / (1.0 + self.lam * self.laplacian.diagonal())
+        self._inverse_diagonal_on: dict[torch.device, torch.Tensor] = {}
         self._warm: dict[str | None, torch.Tensor] = {}
 
     def reset(self) -> None:
         """Forget the warm starts (the next solves start from zero)."""
         self._warm.clear()
 
-    def apply(self, x: torch.Tensor) -> torch.Tensor:
-        """A x for x (N, ...) on x's device."""
-        return _sparse_apply(self.matrix, self._torch_matrix, x, "CGSystem.apply")
-
     def solve(self, b: torch.Tensor, slot: str | None = None) -> torch.Tensor:
         """x ~= A^-1 b for b (N, ...), warm-started from the previous solution of the same `slot`."""
-        b_cols = _as_columns(b, self.size, "CGSystem.solve").detach()
-        key = (b.device, b.dtype)
-        matrix = _torch_csr(self.matrix, self._torch_matrix, key)
-        if key not in self._inverse_diagonal:
-            self._inverse_diagonal[key] = torch.from_numpy(1.0 / self.matrix.diagonal()).to(device=b.device, dtype=b.dtype)[:, None]
-        inv_diag = self._inverse_diagonal[key]
+        rhs = _as_columns(b, self.size, "CGSystem.solve").detach().to(torch.float64)
+        if b.device not in self._inverse_diagonal_on:
+            self._inverse_diagonal_on[b.device] = torch.from_numpy(self._inverse_diagonal).to(b.device)[:, None]
+        inv_diag = self._inverse_diagonal_on[b.device]
 
-        b_norm = b_cols.norm(dim=0)
+        b_norm = rhs.norm(dim=0)
         active = b_norm > 0  # a zero column has the exact solution zero
-        warm = self._warm.get(slot)
-        x = warm.clone() if warm is not None and warm.shape == b_cols.shape and warm.dtype == b.dtype and warm.device == b.device else torch.zeros_like(b_cols)
-        x = x * active
-        r = b_cols - matrix @ x
-        z = inv_diag * r
-        p = z.clone()
-        rz = (r * z).sum(dim=0)
         safe_norm = torch.where(active, b_norm, torch.ones_like(b_norm))
+        warm = self._warm.get(slot)
+        x = warm.clone() if warm is not None and warm.shape == rhs.shape and warm.device == rhs.device else torch.zeros_like(rhs)
+        x = x * active
         iterations = 0
-        residual = (r.norm(dim=0) / safe_norm).max()
-        while residual.item() > self.tol and iterations < self.max_iter:
-            ap = matrix @ p
-            pap = (p * ap).sum(dim=0)
-            # Columns that already converged exactly have p = 0; keep them fixed instead of dividing 0 by 0.
-            alpha = torch.where(pap > 0, rz / torch.where(pap > 0, pap, torch.ones_like(pap)), torch.zeros_like(pap))
-            x = x + alpha * p
-            r = r - alpha * ap
-            z = inv_diag * r
-            rz_new = (r * z).sum(dim=0)
-            beta = torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, torch.ones_like(rz)), torch.zeros_like(rz))
-            p = z + beta * p
-            rz = rz_new
-            iterations += 1
+        while True:
+            # The true residual decides convergence; the recursively updated one only ends each CG run.
+            r = rhs - self._apply64(x)
             residual = (r.norm(dim=0) / safe_norm).max()
+            if residual.item() <= self.tol or iterations >= self.max_iter:
+                break
+            z = inv_diag * r
+            p = z.clone()
+            rz = (r * z).sum(dim=0)
+            while iterations < self.max_iter:
+                ap = self._apply64(p)
+                pap = (p * ap).sum(dim=0)
+                # Columns that already converged exactly have p = 0; keep them fixed instead of dividing 0 by 0.
+                alpha = torch.where(pap > 0, rz / torch.where(pap > 0, pap, torch.ones_like(pap)), torch.zeros_like(pap))
+                x.addcmul_(alpha, p)
+                r.addcmul_(alpha, ap, value=-1.0)
+                torch.mul(inv_diag, r, out=z)
+                rz_new = (r * z).sum(dim=0)
+                beta = torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, torch.ones_like(rz)), torch.zeros_like(rz))
+                p.mul_(beta).add_(z)
+                rz = rz_new
+                iterations += 1
+                if (r.norm(dim=0) / safe_norm).max().item() <= self.tol:
+                    break
         self.last_iterations = iterations
         self.last_residual = float(residual)
         if self.last_residual > self.tol:
@@ -139,24 +175,4 @@ class CGSystem:
                 stacklevel=2,
             )
         self._warm[slot] = x
-        return x.reshape(b.shape).clone()
-
-
-def _torch_csr(matrix: sp.csr_matrix, cache: dict, key: tuple) -> torch.Tensor:
-    if key not in cache:
-        device, dtype = key
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta", category=UserWarning)
-            cache[key] = torch.sparse_csr_tensor(
-                torch.from_numpy(matrix.indptr.astype(np.int64)),
-                torch.from_numpy(matrix.indices.astype(np.int64)),
-                torch.from_numpy(matrix.data),
-                size=matrix.shape,
-                check_invariants=True,
-            ).to(device=device, dtype=dtype)
-    return cache[key]
-
-
-def _sparse_apply(matrix: sp.csr_matrix, cache: dict, x: torch.Tensor, who: str) -> torch.Tensor:
-    columns = _as_columns(x, matrix.shape[0], who)
-    return (_torch_csr(matrix, cache, (x.device, x.dtype)) @ columns).reshape(x.shape)
+        return x.to(b.dtype, copy=True).reshape(b.shape)

@@ -5,9 +5,15 @@ Implements the dual-level update rules of Eqs. 4-5 (grid levels: lattice L_g; an
 Forms (`PrecondConfig.form`, profile section `precond`):
 - "filter": the stored parameter is x; backward replaces dL/dx by (I + lambda L)^-2 dL/dx, then the
   optimizer steps x. Under plain gradient descent this is Eqs. 4-5 verbatim.
-- "substitute": the stored parameter is u = (I + lambda L) x (Large Steps); forward solves
-  x = (I + lambda L)^-1 u and backward solves the same symmetric system, so dL/du = (I + lambda L)^-1 dL/dx
-  and a gradient step on u moves x by -lr (I + lambda L)^-2 dL/dx: again Eqs. 4-5 under gradient descent.
+- "substitute": the stored parameter is u = (I + lambda L) (x - x0) (Large Steps, taken relative to the
+  initial value x0, the buffer `origin`); forward solves x = x0 + (I + lambda L)^-1 u and backward solves
+  the same symmetric system, so dL/du = (I + lambda L)^-1 dL/dx and a gradient step on u moves x by
+  -lr (I + lambda L)^-2 dL/dx: again Eqs. 4-5 under gradient descent. u starts at exactly 0, so x0 comes
+  back exactly for any lambda. Storing u = (I + lambda L) x instead (the predecessor's choice; the same
+  gradient path, since only u's increments reach the optimiser) rounded A x0 to float32 and shifted the
+  recovered initial anchors (100k) by up to 5 mm at lambda = 1e6 and 1.1 m at lambda = 1e8.
+  An all-zero start (the latent grid's default) stores no origin. A state dict without `origin` (written
+  before origins existed) loads as x0 = 0, which is what it meant.
 - "none": a plain parameter (the no-preconditioning ablation).
 The forms differ under Adam, whose per-element scaling sits between the two solves; UniformAdam
 (pig.field.optim) keeps one scale per tensor and so keeps the filter. The default, "substitute" with
@@ -15,9 +21,10 @@ Adam at the paper's learning rates, is the one the toy fits of benchmarks/precon
 (benchmarks/NOTES.md, "Preconditioning").
 
 Use: `p = PreconditionedTensor(x0, system, form)`; `p()` returns x (differentiable); optimise
-`p.param`; `p.set_value(x)` overwrites x. Call `p()` once per optimisation step and reuse the result:
-every call runs the solves. A system is any object with `solve(b, slot) -> A^-1 b` and `apply(x) -> A x`
-(LatticeSystem, FactorizedSystem, CGSystem); `slot` names the warm start an iterative solver reuses.
+`p.param`; `p.set_value(x)` overwrites x; `p.bake()` freezes the current x as a plain tensor. Call
+`p()` once per optimisation step and reuse the result: every call runs the solves. A system is any
+object with `solve(b, slot) -> A^-1 b` and `apply(x) -> A x` (LatticeSystem, FactorizedSystem,
+CGSystem); `slot` names the warm start an iterative solver reuses.
 """
 from __future__ import annotations
 
@@ -94,7 +101,7 @@ class FilteredGradient(torch.autograd.Function):
 
 
 class PreconditionedTensor(nn.Module):
-    """Holds the optimised tensor `param` (x, or u = A x for "substitute"); `forward()` returns x."""
+    """Holds the optimised tensor `param` (x, or u = A (x - origin) for "substitute"); `forward()` returns x."""
 
     def __init__(self, value: torch.Tensor, system: LinearSystem | None, form: Form):
         super().__init__()
@@ -105,22 +112,50 @@ class PreconditionedTensor(nn.Module):
         self.form = form
         self.system = system
         value = value.detach()
-        self.param = nn.Parameter((system.apply(value) if form == "substitute" else value).clone())
+        self.param = nn.Parameter(torch.zeros_like(value) if form == "substitute" else value.clone())
+        self.register_buffer("origin", _origin_of(value) if form == "substitute" else None)
 
     def forward(self) -> torch.Tensor:
         if self.form == "substitute":
-            return SubstitutionSolve.apply(self.param, self.system)
+            offset = SubstitutionSolve.apply(self.param, self.system)
+            return offset if self.origin is None else self.origin + offset
         if self.form == "filter":
             return FilteredGradient.apply(self.param, self.system)
         return self.param
 
     @torch.no_grad()
     def set_value(self, value: torch.Tensor) -> None:
+        """Make x = value; the substitution form moves its origin there and restarts u at 0."""
         value = value.to(self.param)
-        self.param.copy_(self.system.apply(value) if self.form == "substitute" else value)
+        if self.form == "substitute":
+            self.origin = _origin_of(value)
+            self.param.zero_()
+        else:
+            self.param.copy_(value)
+
+    @torch.no_grad()
+    def bake(self) -> None:
+        """Store the current x as a plain frozen tensor (form "none"): no solves when only x is needed."""
+        value = self().detach().clone()
+        self.form = "none"
+        self.origin = None
+        self.param = nn.Parameter(value, requires_grad=False)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # The state dict says whether there is an origin (a zero start, or one written before origins, has none).
+        if self.form == "substitute":
+            stored = state_dict.get(prefix + "origin")
+            like = self.param
+            self.origin = None if stored is None else torch.empty(stored.shape, dtype=like.dtype, device=like.device)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         return f"form={self.form}, shape={tuple(self.param.shape)}"
+
+
+def _origin_of(value: torch.Tensor) -> torch.Tensor | None:
+    """The substitution origin for an initial value: None for all zeros (x = A^-1 u needs none)."""
+    return value.detach().clone() if bool(value.ne(0).any()) else None
 
 
 def knn_system(points: torch.Tensor, cfg: PrecondConfig) -> FactorizedSystem | CGSystem:

@@ -14,19 +14,80 @@ import torch.nn.functional as F
 
 from pig.metrics.weights import INCEPTION_FILE, WeightsMissing, locate
 
-# 2048 feature dimensions make the covariance full rank only above 2048 images; below this many
-# the estimate is dominated by its O(1/N) bias, so the value is reported missing. The default is
-# 2000 so that THuman4's 2000-frame novel-view set (one camera) still gets a value, as in the paper.
+# Below this many images per set the FID is still computed, but flagged: with 2048 feature dimensions its
+# O(1/N) bias dominates small sets, so values compare only at equal N. 2000 is THuman4's novel-view set.
 DEFAULT_MIN_IMAGES = 2000
 INCEPTION_SIZE = 299
 
 
-def feature_statistics(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (D,) and covariance (D, D) in float64 of features (N, D), N-1 normalised as the standard tools."""
-    features = np.asarray(features, dtype=np.float64)
-    if features.ndim != 2 or features.shape[0] < 2:
-        raise ValueError(f"feature_statistics expects (N >= 2, D) features, found {features.shape}")
-    return features.mean(0), np.cov(features, rowvar=False)
+class FeatureStatistics:
+    """Running mean (D,) and covariance (D, D) of feature batches in float64; memory O(D^2 + chunk_rows D),
+    whatever the number of images (at D = 2048 and 512 rows: 40 MiB kept, under 90 MiB while merging).
+
+    Batches are buffered up to `chunk_rows` rows (each O(D^2) merge then serves many images), centred on
+    their own mean and merged with the pairwise update of Chan, Golub and LeVeque (1979):
+    M2 = M2_a + M2_b + (n_a n_b / n) d d^T, d = mean_b - mean_a. A plain sum of outer products would lose
+    all precision for features whose mean is large against their spread.
+    """
+
+    def __init__(self, chunk_rows: int = 512):
+        self.chunk_rows = chunk_rows
+        self.count = 0  # feature vectors added
+        self._dim: int | None = None
+        self._pending: list[np.ndarray] = []
+        self._pending_rows = 0
+        self._merged = 0
+        self._mean: np.ndarray | None = None
+        self._scatter: np.ndarray | None = None  # sum of outer products of deviations from the mean
+
+    def update(self, features) -> None:
+        """Add a batch of features (B, D); B may be any size (0 too), D must not change."""
+        features = np.array(features, dtype=np.float64)  # a copy: the caller may reuse its buffer
+        if features.ndim != 2 or (self._dim is not None and features.shape[1] != self._dim):
+            expected = "(B, D)" if self._dim is None else f"(B, {self._dim})"
+            raise ValueError(f"FeatureStatistics expects {expected} features, found {features.shape}")
+        if features.shape[0] == 0:
+            return
+        self._dim = features.shape[1]
+        self._pending.append(features)
+        self._pending_rows += features.shape[0]
+        self.count += features.shape[0]
+        if self._pending_rows >= self.chunk_rows:
+            self._merge()
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        rows = self._pending_rows
+        # The rows centred on their mean, plus one row sqrt(n_a n_b / n) d that gives the cross term in the
+        # same product: one (rows + 1, D) buffer and one (D, D) temporary.
+        block = np.concatenate([*self._pending, np.zeros((1, self._dim))])
+        self._pending, self._pending_rows = [], 0
+        batch_mean = block[:rows].mean(0)
+        block[:rows] -= batch_mean
+        if self._merged == 0:
+            self._mean, self._scatter = batch_mean, block.T @ block
+        else:
+            total = self._merged + rows
+            delta = batch_mean - self._mean
+            block[rows] = delta * math.sqrt(self._merged * rows / total)
+            self._scatter += block.T @ block
+            self._mean = self._mean + delta * (rows / total)
+        self._merged += rows
+
+    @property
+    def mean(self) -> np.ndarray:
+        if self.count == 0:
+            raise ValueError("a mean needs >= 1 feature vector, have 0")
+        self._merge()
+        return self._mean
+
+    def covariance(self) -> np.ndarray:
+        """Sample covariance, N-1 normalised as the standard tools (np.cov, clean-fid)."""
+        if self.count < 2:
+            raise ValueError(f"a covariance needs >= 2 feature vectors, have {self.count}")
+        self._merge()
+        return self._scatter / (self.count - 1)
 
 
 def _psd_eigenvalues_floor(values: np.ndarray) -> np.ndarray:
@@ -59,12 +120,21 @@ def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma
     return float(diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2 * cross)
 
 
-def fid_from_features(a: np.ndarray, b: np.ndarray, min_images: int = DEFAULT_MIN_IMAGES) -> tuple[float, str]:
-    """(FID, reason) of two feature sets (N, D); NaN with the reason when either set is too small."""
-    smallest = min(len(a), len(b))
-    if smallest < max(min_images, 2):
-        return math.nan, f"FID is NaN: needs >= {min_images} images per set, have {smallest}"
-    return frechet_distance(*feature_statistics(a), *feature_statistics(b)), ""
+def small_set_note(images: int, min_images: int = DEFAULT_MIN_IMAGES) -> str:
+    """The caveat a FID over fewer than `min_images` images carries ('' when there are enough)."""
+    if images >= min_images:
+        return ""
+    return f"FID over {images} images (< {min_images}): biased high, compare only at equal N"
+
+
+def fid_from_statistics(fake: FeatureStatistics, real: FeatureStatistics,
+                        min_images: int = DEFAULT_MIN_IMAGES) -> tuple[float, str]:
+    """(FID, note) of two accumulated feature sets: NaN below 2 images per set, else the value, with the
+    small-set caveat below `min_images`."""
+    images = min(fake.count, real.count)
+    if images < 2:
+        return math.nan, f"FID is NaN: needs >= 2 images per set, have {images}"
+    return frechet_distance(fake.mean, fake.covariance(), real.mean, real.covariance()), small_set_note(images, min_images)
 
 
 class InceptionFeatures(torch.nn.Module):

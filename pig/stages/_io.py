@@ -6,6 +6,7 @@ hidden temporaries a kill leaves carry the writer's process id, so the next run 
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -110,8 +111,29 @@ def write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def _json_ready(data: Any) -> Any:
+    """`data` with NaN and +-inf (Python or numpy floats) as None, numpy scalars and arrays as Python values."""
+    if isinstance(data, dict):
+        return {key: _json_ready(value) for key, value in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [_json_ready(value) for value in data]
+    if isinstance(data, np.ndarray):
+        return _json_ready(data.tolist())
+    if isinstance(data, np.generic):
+        data = data.item()
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data
+
+
 def write_json(path: str | Path, data: Any) -> None:
-    write_text(path, json.dumps(data, indent=2, allow_nan=True) + "\n")
+    """Strict JSON: non-finite numbers are written as null (JSON has no NaN); readers take null back as NaN."""
+    write_text(path, json.dumps(_json_ready(data), indent=2, allow_nan=False) + "\n")
+
+
+def nan_for_null(record: dict) -> dict:
+    """A flat record read from `write_json`'s JSON (an evaluate summary, a render timing) with null as NaN."""
+    return {key: math.nan if value is None else value for key, value in record.items()}
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:

@@ -1,7 +1,8 @@
 """Evaluate stage: per-image PSNR, SSIM, LPIPS and per-set FID of one split's renders at every LOD.
 
 Follows the paper's protocol (Section 4.2): full frame, black background, ground truth masked to
-black. Writes metrics/{split}_lod{l}.csv (per image) and metrics/{split}_lod{l}.json (summary).
+black. Writes metrics/{split}_lod{l}.csv (per image) and metrics/{split}_lod{l}.json (summary). Views are
+read one batch at a time and FID keeps running feature statistics, so memory does not grow with the split.
 """
 from __future__ import annotations
 
@@ -19,13 +20,13 @@ import torch
 from tqdm import tqdm
 
 from pig.config import load_profile, load_section, resolve_device
-from pig.metrics.fid import DEFAULT_MIN_IMAGES, InceptionFeatures, fid_from_features
+from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
 from pig.metrics.lpips import LPIPS
 from pig.metrics.psnr import psnr
 from pig.metrics.ssim import ssim
 from pig.metrics.weights import WeightsMissing
 from pig.stages._cli import add_common_arguments, run_cli
-from pig.stages._io import read_png, write_json, write_text
+from pig.stages._io import nan_for_null, read_png, write_json, write_text
 from pig.stages._outputs import claim_files
 
 
@@ -37,7 +38,7 @@ class EvaluateConfig:
     lpips_backbone_weights: str | None = None  # torchvision checkpoint; None: torch hub cache
     lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
     inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: hub cache or /tmp
-    fid_min_images: int = DEFAULT_MIN_IMAGES
+    fid_min_images: int = DEFAULT_MIN_IMAGES  # FID over fewer images per set is flagged as biased (still computed)
     batch_size: int = 8
     device: str = "auto"  # "auto": CUDA when available
     timing_frames: int = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
@@ -60,16 +61,16 @@ def _load_metric(build, what: str) -> tuple[torch.nn.Module | None, str]:
         return None, f"{what} is NaN: {str(err).split(' (searched')[0]}"
 
 
-def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lpips_net, inception, device):
-    """Per-image metrics (DataFrame), summary (dict) and Inception features (render, truth) of one split at one LOD."""
-    cameras, frames = capture.split[split]["cameras"], capture.split[split]["frames"]
+def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lpips_net, inception, device,
+                   fid_note: str = "") -> tuple[pd.DataFrame, dict]:
+    """Per-image metrics (DataFrame) and summary (dict) of one split at one LOD, over the split's views that
+    have ground truth. Without `inception` the FID is NaN with `fid_note`."""
     # Batches never mix image sizes (DNA-Rendering's two camera groups differ).
     by_size: dict[tuple[int, int], list] = {}
-    for f in frames:
-        for c in cameras:
-            by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
+    for c, f in capture.views(split):
+        by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
     batches = [pairs[i:i + cfg.batch_size] for pairs in by_size.values() for i in range(0, len(pairs), cfg.batch_size)]
-    rows, fake_features, real_features = [], [], []
+    rows, fake_features, real_features = [], FeatureStatistics(), FeatureStatistics()
     for batch in tqdm(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch"):
         renders = np.stack([read_png(level_dir / cam / f"{frame:08d}.png") for cam, frame in batch])
         truths = np.stack([capture.image(cam, frame) * capture.mask(cam, frame)[..., None] for cam, frame in batch])
@@ -87,14 +88,18 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
                 "ssim_blank": ssim(blank, y, reduction="none"),
             }
             if inception is not None:
-                fake_features.append(inception(x).double().cpu().numpy())
-                real_features.append(inception(y).double().cpu().numpy())
+                fake_features.update(inception(x).double().cpu().numpy())
+                real_features.update(inception(y).double().cpu().numpy())
         for i, (cam, frame) in enumerate(batch):
             rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
     table = pd.DataFrame(rows)
     summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
     summary["images"] = len(table)
-    return table, summary, fake_features, real_features
+    fid = math.nan
+    if inception is not None:
+        fid, fid_note = fid_from_statistics(fake_features, real_features, cfg.fid_min_images)
+    summary.update(fid=fid, fid_images=len(table), fid_min_images=cfg.fid_min_images, fid_note=fid_note)
+    return table, summary
 
 
 def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig,
@@ -114,42 +119,50 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     levels = levels if levels is not None else rendered
     claim_files(output_dir, [f"{split}_lod{level}{ext}" for level in levels for ext in (".csv", ".json")], "evaluate",
                 (capture_dir, split_dir), overwrite)
-    capture = Capture.load(capture_dir)
+    # Each view is read once: a cache would only hold decoded images that are never asked for again.
+    capture = Capture.load(capture_dir, cache_mb=0)
     if split not in capture.split:
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
+    views, listed = len(capture.views(split)), len(capture.split[split]["cameras"]) * len(capture.split[split]["frames"])
+    if views == 0:
+        raise FileNotFoundError(f"{capture_dir}: split {split!r} has no view with an image and a mask to score")
+    if views < listed:
+        print(f"[evaluate] {split}: {listed - views} of {listed} views have no image in the capture (missing raw "
+              f"frames); scoring the other {views}")
     device = resolve_device(cfg.device)
-    images = len(capture.split[split]["cameras"]) * len(capture.split[split]["frames"])
     lpips_net, lpips_note = _load_metric(
         lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights).to(device), "LPIPS")
-    if images < cfg.fid_min_images:
-        # Not worth loading Inception: the set is too small for a meaningful FID anyway.
-        inception, fid_note = None, f"FID is NaN: needs >= {cfg.fid_min_images} images per set, have {images}"
-        print(f"[evaluate] FID is NaN: {fid_note}")
-    else:
-        inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
+    inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
     written = []
     for level in levels:
         level_dir = split_dir / f"lod{level}"
-        table, summary, fake, real = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device)
-        fid, note = math.nan, fid_note
-        if inception is not None:
-            fid, note = fid_from_features(np.concatenate(fake), np.concatenate(real), cfg.fid_min_images)
+        table, summary = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device, fid_note)
         timing = _read_json(level_dir / "timing.json")
-        summary.update(split=split, lod=level, fid=fid, lpips_net=cfg.lpips_net, lpips_note=lpips_note, fid_note=note,
-                       **timing)
+        summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
         write_json(output_dir / f"{split}_lod{level}.json", summary)
         written.append(csv_path)
         print(f"[evaluate] {split} lod{level}: PSNR {summary['psnr']:.2f} SSIM {summary['ssim']:.4f} "
-              f"(blank {summary['psnr_blank']:.2f} / {summary['ssim_blank']:.4f}) over {summary['images']} images")
+              f"(blank {summary['psnr_blank']:.2f} / {summary['ssim_blank']:.4f}) FID {summary['fid']:.2f} "
+              f"over {summary['images']} images")
+        if summary["fid_note"]:
+            print(f"[evaluate] {split} lod{level}: {summary['fid_note']}")
     return written
 
 
 def _read_json(path: Path) -> dict:
+    """The render stage's timing record, null (written for NaN) read back as NaN."""
+    expected = "the render stage's timing record (splats, model_mb, fps, device)"
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing; expected the render stage's timing record (splats, model_mb, fps, device)")
-    return json.loads(path.read_text())
+        raise FileNotFoundError(f"{path}: missing; expected {expected}")
+    try:
+        record = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not valid JSON ({err}); expected {expected}") from None
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: expected {expected} as a JSON object, found {type(record).__name__}")
+    return nan_for_null(record)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from pig.avatar.batches import CaptureViews, sample_batch
+from pig.avatar.batches import Sampler, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
@@ -29,6 +29,7 @@ from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.config import ConfigError, load_profile, load_section, resolve_device
 from pig.data.capture import Capture
+from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.metrics.psnr import psnr
@@ -37,7 +38,7 @@ from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_figure, write_text
 from pig.stages._outputs import claim_files
 
-LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr"]
+LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr", "data_wait_ms"]
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
 
 
@@ -66,6 +67,20 @@ class FitConfig:
     # Torch threads on the CPU; 0 keeps torch's default. One thread avoids OpenMP spin-waiting when
     # the cores are shared (measured 10x faster under contention, benchmarks/NOTES.md).
     cpu_threads: int = 0
+    # Training views are streamed (pig.avatar.batches): `loader_workers` threads decode them `prefetch`
+    # iterations ahead of the one trained on, through an LRU cache of `view_cache` decoded views. Host memory
+    # holds at most view_cache + (prefetch + 1) x views x timesteps decoded views (4 bytes a pixel), however
+    # long the capture. Views are drawn uniformly, so the cache saves decoding only where it holds much of
+    # the training set: 256 holds all of the cpu-demo capture's (180) and costs 1.5 GiB at THuman4's
+    # 1330 x 1150 (6.1 MB a view), a tenth of the fit rule's mem_mb.
+    view_cache: int = 256
+    prefetch: int = 2
+    loader_workers: int = 4
+
+    def __post_init__(self):
+        for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0)):
+            if getattr(self, name) < least:
+                raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
 
 
 def perturb_params(params: SmplxParams, sigma: float, seed: int) -> SmplxParams:
@@ -123,28 +138,32 @@ def _plot_log(path: Path, rows: list[dict]) -> None:
 
 
 class HeldOut:
-    """Novel-view cameras on a few training frames: PSNR at the finest LOD, black background, masked truth."""
+    """Novel-view cameras on a few training frames: PSNR at the finest LOD, black background, masked truth.
+    The views are read when evaluated, at most `chunk` at a time."""
 
-    def __init__(self, capture: Capture, model, count: int, device):
+    def __init__(self, capture: Capture, model, source: ViewSource, count: int, chunk: int):
         split = capture.split["novel_view"]
         frames = [f for f in split["frames"] if f in model.frame_ids]
         picks = [frames[int(i)] for i in np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).round())] if frames else []
-        self.views = CaptureViews(capture, split["cameras"], picks, device, desc="load held-out views") if picks else None
+        seen_by = {f: [c for c in split["cameras"] if capture.has(c, f)] for f in picks}
+        self.steps = [(model.timestep_of_frame(f), cams) for f, cams in seen_by.items() if cams]
+        self.source, self.chunk = source, chunk
 
     @torch.no_grad()
     def psnr(self, model, raster: RasterizerConfig) -> float:
-        if self.views is None:
+        if not self.steps:
             return math.nan
         values = []
-        black = torch.zeros(3, device=self.views.device)
-        for frame in self.views.frames:
-            step = model.timestep_of_frame(frame)
+        black = torch.zeros(3, device=self.source.device)
+        for step, cameras in self.steps:
             g = model(torch.tensor([step]), model.num_levels - 1)
-            for vb in self.views.batch(self.views.frames.index(frame), self.views.cameras):
-                out = render_gaussians(g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], vb.viewmats, vb.Ks,
-                                       vb.width, vb.height, black, backend=raster.backend, max_pairs=raster.max_pairs)
-                truth = vb.images * vb.masks[..., None]
-                values += psnr(out.color.clamp(0, 1).permute(0, 3, 1, 2), truth.permute(0, 3, 1, 2)).tolist()
+            for first in range(0, len(cameras), self.chunk):
+                [batches] = self.source.views(self.source.stage([(step, cameras[first:first + self.chunk])]))
+                for vb in batches:
+                    out = render_gaussians(g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], vb.viewmats, vb.Ks,
+                                           vb.width, vb.height, black, backend=raster.backend, max_pairs=raster.max_pairs)
+                    truth = vb.images * vb.masks[..., None]
+                    values += psnr(out.color.clamp(0, 1).permute(0, 3, 1, 2), truth.permute(0, 3, 1, 2)).tolist()
         return float(np.mean(values))
 
 
@@ -157,8 +176,10 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
     or with `overwrite`.
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
-    `phase(name)` wraps each part of an iteration ("sample", "model", "render", "loss", "backward",
-    "step"; render and loss once per view batch): a hook for profilers (benchmarks/fit_gpu.py).
+    `phase(name)` wraps each part of an iteration ("sample": waiting for the iteration's views, "model",
+    "render", "loss", "backward", "step"; render and loss once per view batch): a hook for profilers
+    (benchmarks/fit_gpu.py). The wait for the views is also logged per iteration (train_log.csv's
+    data_wait_ms) and its mean printed at the end.
     """
     threads = torch.get_num_threads()
     try:
@@ -188,8 +209,13 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
     avatar_path = output_dir / "avatar.pt"
     log_path = output_dir / "train_log.csv"
 
-    capture = Capture.load(capture_dir)
+    capture = Capture.load(capture_dir, cache_mb=0)  # the view source caches decoded views
     train = capture.split["train"]
+    # Per timestep, the cameras with an image and mask of its frame (a missing raw frame has none).
+    seen_by = tuple(tuple(c for c in train["cameras"] if capture.has(c, f)) for f in train["frames"])
+    if not any(seen_by):
+        raise CaptureError(f"{capture_dir}: no image and mask of the train split (cameras {train['cameras']}) under "
+                           "images/ and masks/; rerun preprocess")
     index = [capture.frames.index(f) for f in train["frames"]]
     params = perturb_params(capture.params.select(index), fit_cfg.sigma_body, fit_cfg.seed)
     spec = {
@@ -202,14 +228,12 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
     torch.manual_seed(fit_cfg.seed)
     model = build_avatar(spec).to(device)
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg)
-    generator = torch.Generator().manual_seed(fit_cfg.seed)
+    generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
     start, wall_before, rows = 0, 0.0, []
     if state_path.exists():
         start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings)
         print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
 
-    views = CaptureViews(capture, train["cameras"], train["frames"], device)
-    held_out = HeldOut(capture, model, fit_cfg.eval_frames, device)
     lpips = _load_lpips(fit_cfg, device)
     background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
     weights = (fit_cfg.weight_l1, fit_cfg.weight_ssim, fit_cfg.weight_lpips)
@@ -218,53 +242,63 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
         save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings)
         _write_log(log_path, rows)
 
-    started = time.perf_counter()
-    last_save = started
-    if start == 0:
-        rows = [{"iteration": 0, "wall_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
-                 "heldout_psnr": held_out.psnr(model, raster)}]
-    progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
-    for i in progress:
-        with phase("sample"):
-            lod = int(torch.randint(model.num_levels, (1,), generator=generator))
-            picks = sample_batch(generator, model.num_timesteps, train["cameras"], fit_cfg.timesteps, fit_cfg.views)
-            batches = [views.batch(step, cams) for step, cams in picks]
-        with phase("model"):
-            g = model(torch.tensor([step for step, _ in picks]), lod)
-        num_views = sum(len(cams) for _, cams in picks)
-        totals: dict[str, torch.Tensor] = {}
-        for k, step_batches in enumerate(batches):
-            for vb in step_batches:
-                with phase("render"):
-                    out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
-                                           vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
-                with phase("loss"):
-                    band = boundary_band(vb.masks, band_radius(vb.height, fit_cfg.band_radius_px, fit_cfg.band_reference_height))
-                    terms = image_loss(out.color, vb.images, band, background, weights, lpips)
-                    for key, value in terms.items():
-                        totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
-        with phase("backward"):
-            for opt in optimizers:
-                opt.zero_grad(set_to_none=True)
-            totals["total"].backward()
-        with phase("step"):
-            for opt in optimizers:
-                opt.step()
+    with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers) as source:
+        sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
+        batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
+        held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
+        started = time.perf_counter()
+        last_save = started
+        if start == 0:
+            rows = [{"iteration": 0, "wall_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
+                     "heldout_psnr": held_out.psnr(model, raster), "data_wait_ms": ""}]
+        waits = []
+        progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
+        for i in progress:
+            with phase("sample"):
+                batch = batches.get(i)
+            waits.append(batch.wait_s)
+            with phase("model"):
+                g = model(torch.tensor(batch.timesteps), batch.lod)
+            num_views = sum(len(vb.cameras) for step_batches in batch.views for vb in step_batches)
+            totals: dict[str, torch.Tensor] = {}
+            for k, step_batches in enumerate(batch.views):
+                for vb in step_batches:
+                    with phase("render"):
+                        out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
+                                               vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
+                    with phase("loss"):
+                        band = boundary_band(vb.masks, band_radius(vb.height, fit_cfg.band_radius_px, fit_cfg.band_reference_height))
+                        terms = image_loss(out.color, vb.images, band, background, weights, lpips)
+                        for key, value in terms.items():
+                            totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
+            with phase("backward"):
+                for opt in optimizers:
+                    opt.zero_grad(set_to_none=True)
+                totals["total"].backward()
+            with phase("step"):
+                for opt in optimizers:
+                    opt.step()
 
-        iteration = i + 1
-        wall = wall_before + time.perf_counter() - started
-        row = {"iteration": iteration, "wall_s": round(wall, 3), "lod": lod, "heldout_psnr": "",
-               **{key: totals[name].item() if name in totals else "" for key, name in
-                  (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
-        if iteration % fit_cfg.eval_every == 0 or iteration == fit_cfg.iterations:
-            row["heldout_psnr"] = held_out.psnr(model, raster)
-            progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}")
-        rows.append(row)
-        if iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes:
-            checkpoint(state_path, iteration, wall)
-            last_save = time.perf_counter()
-        if on_iteration is not None:
-            on_iteration(iteration)
+            iteration = i + 1
+            wall = wall_before + time.perf_counter() - started
+            row = {"iteration": iteration, "wall_s": round(wall, 3), "lod": batch.lod, "heldout_psnr": "",
+                   "data_wait_ms": round(1000 * batch.wait_s, 3),
+                   **{key: totals[name].item() if name in totals else "" for key, name in
+                      (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
+            if iteration % fit_cfg.eval_every == 0 or iteration == fit_cfg.iterations:
+                row["heldout_psnr"] = held_out.psnr(model, raster)
+                progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}")
+            rows.append(row)
+            if iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes:
+                checkpoint(state_path, iteration, wall)
+                last_save = time.perf_counter()
+            if on_iteration is not None:
+                on_iteration(iteration)
+    if waits:
+        per_iteration = (time.perf_counter() - started) / len(waits)
+        print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "
+              f"of {1000 * per_iteration:.0f} ms) over {len(waits)} iterations; {source.decoded} views decoded, "
+              f"{source.hits} from the cache, at most {source.peak_held} decoded views held", file=sys.stderr)
 
     wall = wall_before + time.perf_counter() - started
     checkpoint(avatar_path, fit_cfg.iterations, wall)

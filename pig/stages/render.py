@@ -55,9 +55,7 @@ def bake_preconditioning(model: torch.nn.Module) -> None:
     solved again for every frame, which is training machinery, not per-frame work."""
     for module in model.modules():
         if isinstance(module, PreconditionedTensor) and module.form != "none":
-            value = module().detach().clone()
-            module.form = "none"
-            module.param = torch.nn.Parameter(value, requires_grad=False)
+            module.bake()
 
 
 @dataclass

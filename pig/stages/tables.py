@@ -2,7 +2,10 @@
 
 Layouts of Section 4: Tables 1-2 (variants x novel-view / novel-pose PSNR, SSIM, LPIPS, FID, splats),
 the LOD table (splats, metrics, model MB, FPS per level), and held-out PSNR against training time.
-The LPIPS columns carry their backbone in the header (`novel_view_lpips_vgg`, `lpips_alex`, ...).
+The LPIPS columns carry their backbone in the header (`novel_view_lpips_vgg`, `lpips_alex`, ...). Each FID
+column has two numeric companions, `..._fid_images` (images per set; the smallest over the subjects
+averaged) and `..._fid_biased` (1 when a set had fewer than the evaluate stage's `fid_min_images`); the
+Markdown shows them in the FID cell, as `123.40 (N=36, biased)`.
 """
 from __future__ import annotations
 
@@ -18,11 +21,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from pig.stages._cli import add_common_arguments, run_cli  # noqa: E402
-from pig.stages._io import write_figure, write_text  # noqa: E402
+from pig.stages._io import nan_for_null, write_figure, write_text  # noqa: E402
 from pig.stages._outputs import claim_files  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "fid")
+FID_COUNT = ("fid_images", "fid_min_images")
 BLANK_ROW = "blank (black image)"
 
 
@@ -35,11 +39,17 @@ def read_summaries(paths: list[Path]) -> pd.DataFrame:
             raise ValueError(f"{path}: expected a summary at .../{{subject}}/{{variant}}/metrics/{{split}}_lod{{l}}.json")
         try:
             summary = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise ValueError(f"{path}: not a readable evaluate summary ({err})") from None
+        if not isinstance(summary, dict):
+            raise ValueError(f"{path}: expected an evaluate summary (a JSON object), found {type(summary).__name__}")
+        summary = nan_for_null(summary)  # the evaluate stage writes NaN as null
         missing = {"split", "lod", "splats", *METRICS} - set(summary)
         if missing:
             raise ValueError(f"{path}: summary lacks keys {sorted(missing)}")
+        if not math.isnan(summary["fid"]) and not set(FID_COUNT) <= set(summary):
+            raise ValueError(f"{path}: summary has a FID but not the image count it was computed over (no "
+                             f"{' / '.join(FID_COUNT)}: written by an older evaluate stage); re-run evaluate")
         rows.append({"subject": path.parts[-4], "variant": path.parts[-3], **summary})
     if not rows:
         raise ValueError("no evaluate summaries given")
@@ -49,6 +59,15 @@ def read_summaries(paths: list[Path]) -> pd.DataFrame:
 def _notes(frame: pd.DataFrame) -> str:
     notes = sorted({n for col in ("lpips_note", "fid_note") if col in frame for n in frame[col].dropna() if n})
     return "; ".join(notes)
+
+
+def fid_count(summaries: pd.DataFrame) -> tuple[float, float]:
+    """(images, biased) of the FIDs one table cell averages: the smallest set's image count, and 1.0 when any
+    set had fewer than its `fid_min_images` (the estimate's bias grows as 1/N), else 0.0; NaN without a FID."""
+    scored = summaries[summaries["fid"].notna()]
+    if scored.empty:
+        return math.nan, math.nan
+    return float(scored["fid_images"].min()), float((scored["fid_images"] < scored["fid_min_images"]).any())
 
 
 def lpips_column(summaries: pd.DataFrame) -> str:
@@ -85,6 +104,7 @@ def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
             rows_split = part[part["split"] == split]
             for metric in METRICS:
                 row[f"{split}_{metric}"] = rows_split[metric].mean() if not rows_split.empty else math.nan
+            row[f"{split}_fid_images"], row[f"{split}_fid_biased"] = fid_count(rows_split)
         row["splats"] = int(part["splats"].max())
         row["notes"] = _notes(part)
         rows.append(row)
@@ -93,7 +113,8 @@ def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
     for split in SPLITS:
         rows_split = finest[finest["split"] == split]
         blank.update({f"{split}_psnr": rows_split["psnr_blank"].mean(), f"{split}_ssim": rows_split["ssim_blank"].mean(),
-                      f"{split}_lpips": math.nan, f"{split}_fid": math.nan})
+                      f"{split}_lpips": math.nan, f"{split}_fid": math.nan, f"{split}_fid_images": math.nan,
+                      f"{split}_fid_biased": math.nan})
     blank.update(splats=0, notes=f"{BLANK_ROW}: an all-black render scored like the methods (PSNR and SSIM only)")
     rows.append(blank)
     return pd.DataFrame(rows).rename(columns={f"{split}_lpips": f"{split}_{lpips}" for split in SPLITS})
@@ -113,6 +134,7 @@ def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_
                 "lod": f"{level + 1}/{len(levels)}",
                 "splats": int(at["splats"].max()),
                 **{metric: at[metric].mean() for metric in METRICS},
+                **dict(zip(("fid_images", "fid_biased"), fid_count(at))),
                 "mb": at["model_mb"].mean(),
                 "fps": at["fps"].mean(),
                 "device": "; ".join(sorted(at["device"].unique())),
@@ -122,9 +144,9 @@ def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_
 
 
 def to_markdown(table: pd.DataFrame, title: str) -> str:
-    """A GitHub Markdown table; NaN prints as 'n/a' and the notes column becomes a list below it."""
+    """A GitHub Markdown table; NaN prints as 'n/a', a FID carries its image count and bias flag in its cell
+    (`123.40 (N=36, biased)`), and the notes column becomes a list below the table."""
     notes = sorted({n for cell in table.get("notes", []) for n in str(cell).split("; ") if n})
-    shown = table.drop(columns=["notes"], errors="ignore")
 
     def cell(value) -> str:
         if isinstance(value, float):
@@ -133,6 +155,12 @@ def to_markdown(table: pd.DataFrame, title: str) -> str:
             return f"{value:.3f}" if abs(value) < 10 else f"{value:.2f}"
         return str(value)
 
+    shown = table.drop(columns=["notes"], errors="ignore")
+    for column in [c for c in shown.columns if f"{c}_images" in shown and f"{c}_biased" in shown]:
+        images, biased = shown.pop(f"{column}_images"), shown.pop(f"{column}_biased")
+        shown[column] = [cell(value) if math.isnan(value) else
+                         f"{cell(value)} (N={int(n)}{', biased' if b else ''})"
+                         for value, n, b in zip(table[column], images, biased)]
     lines = [f"## {title}", "", "| " + " | ".join(shown.columns) + " |", "|" + "---|" * len(shown.columns)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in shown.itertuples(index=False)]
     if notes:
