@@ -10,7 +10,8 @@ Generates the profile's synthetic subject, preprocesses it twice (training views
 against the lossless capture, and prints the PSNR of each and the difference (issue 11 asks < 0.05 dB).
 --noise-floor fits the lossless capture a second time, for the run-to-run spread of the same seed (GPU
 rasterisation sums in a nondeterministic order). Each stage runs as `python -m pig.stages.*`; a step whose
-output exists is skipped, so a killed run continues when started again with the same --work.
+output exists is skipped and the fits checkpoint every 2 minutes, so a killed run continues when started again
+with the same arguments.
 """
 from __future__ import annotations
 
@@ -50,11 +51,13 @@ def derived_profile(base: str, work: Path, name: str, preprocess: dict, syntheti
     profile.pop("_path")
     profile["preprocess"] = {**(profile.get("preprocess") or {}), **preprocess}
     profile["synthetic"] = {**(profile.get("synthetic") or {}), **synthetic}
+    fit = dict(profile.get("fit") or {})
     if iterations is not None:
-        fit = dict(profile.get("fit") or {})
         fit["iterations"] = iterations
         fit["eval_every"] = min(int(fit.get("eval_every", iterations)), iterations)
-        profile["fit"] = fit
+    # Frequent checkpoints: a run cut short by a time limit continues when the script is started again.
+    fit["checkpoint_minutes"] = min(float(fit.get("checkpoint_minutes", 2.0)), 2.0)
+    profile["fit"] = fit
     path = work / f"profile_{name}.yaml"
     path.write_text(yaml.safe_dump(profile, sort_keys=False))
     return path
