@@ -16,7 +16,7 @@ from pig.body.model import BodyModel
 from pig.body.params import from_thuman
 from pig.data.capture import Capture
 from pig.data.raw import CaptureError
-from pig.data.rectify import scaled_intrinsics
+from pig.data.rectify import Rectifier, scaled_intrinsics
 from pig.data.thuman4 import Thuman4Capture
 from pig.stages.preprocess import main
 
@@ -71,11 +71,12 @@ def test_cameras_params_and_split_round_trip(preprocessed):
 
 
 def test_images_and_masks_match_opencv_undistort_then_area_resize(preprocessed):
-    """Reference: cv2.undistort (its own maps) + binarise + composite + INTER_AREA, computed here independently."""
+    """Reference: cv2.undistort (its own maps) + binarise + composite + INTER_AREA, computed here independently.
+    On held-out views, which are lossless (the JPEG training views: test_training_views_are_jpeg_...)."""
     raw_root, out = preprocessed
     raw = Thuman4Capture(raw_root)
     capture = Capture.load(out)
-    for cam, frame in (("cam00", 0), ("cam02", 3)):
+    for cam, frame in (("cam02", 0), ("cam00", 3)):
         source = raw.cameras[cam]
         image = cv2.undistort(raw.read_image(cam, frame), source.K, source.dist)
         matte = cv2.undistort(raw.read_mask(cam, frame), source.K, source.dist)
@@ -95,6 +96,60 @@ def test_images_and_masks_match_opencv_undistort_then_area_resize(preprocessed):
         black = capture.image(cam, frame, background=(0, 0, 0))
         np.testing.assert_array_equal(black[~mask], 0.0)
         np.testing.assert_array_equal(black[mask], got[mask])
+
+
+def _lossless(raw_root, cam, frame):
+    """The preprocess output before encoding: uint8 RGB on white and the mask (scale 0.5, as the fixture)."""
+    raw = Thuman4Capture(raw_root)
+    return Rectifier(raw.cameras[cam], 96, 80)(raw.read_image(cam, frame), raw.read_mask(cam, frame),
+                                               np.full(3, 255, np.uint8))
+
+
+def test_training_views_are_jpeg_read_back_on_the_exact_background(preprocessed):
+    raw_root, out = preprocessed
+    capture = Capture.load(out)
+    for cam, frame in capture.views("train"):
+        assert (out / "images" / cam / f"{frame:08d}.jpg").is_file()
+        expected, expected_mask = _lossless(raw_root, cam, frame)
+        mask = capture.mask(cam, frame)
+        np.testing.assert_array_equal(mask, expected_mask)
+        got = capture.image(cam, frame)
+        np.testing.assert_array_equal(got[~mask], 1.0)  # JPEG ringing outside the silhouette is undone
+        error = got[mask] * 255 - expected[mask]
+        assert 0 < np.abs(error).max() and 10 * np.log10(255**2 / np.mean(error**2)) > 30  # lossy, but close
+    for cam, frame in capture.views("novel_view") + capture.views("novel_pose"):
+        expected, _ = _lossless(raw_root, cam, frame)
+        np.testing.assert_array_equal(np.round(capture.image(cam, frame) * 255), expected)  # held out: exact
+
+
+def test_an_all_png_capture_of_earlier_versions_reads_the_same(preprocessed, tmp_path):
+    """Earlier preprocess versions wrote every image as PNG and masks as 8-bit PNG."""
+    raw_root, out = preprocessed
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    for jpeg in old.glob("images/*/*.jpg"):
+        image, _ = _lossless(raw_root, jpeg.parent.name, int(jpeg.stem))
+        cv2.imwrite(str(jpeg.with_suffix(".png")), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        jpeg.unlink()
+    for mask in old.glob("masks/*/*.png"):
+        cv2.imwrite(str(mask), cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE))  # 8 bits per pixel
+        assert mask.read_bytes()[24] == 8
+    capture, new = Capture.load(old), Capture.load(out)
+    assert capture.views("train") == new.views("train") and len(capture.views("train")) == 6
+    for cam, frame in capture.views("train") + capture.views("novel_pose"):
+        expected, expected_mask = _lossless(raw_root, cam, frame)
+        np.testing.assert_array_equal(np.round(capture.image(cam, frame) * 255), expected)
+        np.testing.assert_array_equal(capture.mask(cam, frame), expected_mask)
+
+
+def test_fingerprint_covers_the_jpeg_training_views(preprocessed, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(preprocessed[1], copy)
+    reference = Capture.load(copy).fingerprint()
+    image = copy / "images" / "cam00" / "00000001.jpg"
+    image.write_bytes(image.read_bytes() + b"\0")
+    found = Capture.load(copy).fingerprint()
+    assert sorted(k for k in reference if found[k] != reference[k]) == ["images"]
 
 
 def test_decoded_frames_are_cached_within_the_budget(preprocessed, tmp_path):
@@ -145,6 +200,10 @@ BAD = {
     "split without novel_view": (_edit_json("split.json", lambda d: d.pop("novel_view")),
                                  r"split\.json: expected 'novel_view'"),
     "no report.json": (lambda r: (r / "report.json").unlink(), r"report\.json: file not found"),
+    "a frame as .jpg and .png": (
+        lambda r: shutil.copyfile(r / "images" / "cam00" / "00000001.jpg", r / "images" / "cam00" / "00000001.png"),
+        r"images/cam00: frame 1 has two files, 00000001\.(jpg and 00000001\.png|png and 00000001\.jpg); a capture "
+        r"holds one per frame"),
 }
 
 
@@ -158,11 +217,11 @@ def test_malformed_capture_fails_naming_the_file(preprocessed, tmp_path, case):
 def test_bad_frame_access_names_the_file(preprocessed, tmp_path):
     with pytest.raises(CaptureError, match=r"capture .*nothing not found \(run the preprocess stage"):
         Capture.load(tmp_path / "nothing")
-    copy = _broken(preprocessed[1], tmp_path, lambda r: (r / "images" / "cam00" / "00000002.png").write_bytes(b"x"))
+    copy = _broken(preprocessed[1], tmp_path, lambda r: (r / "images" / "cam00" / "00000002.jpg").write_bytes(b"x"))
     capture = Capture.load(copy)
-    with pytest.raises(CaptureError, match=r"images/cam00/00000002\.png: image bytes could not be decoded"):
+    with pytest.raises(CaptureError, match=r"images/cam00/00000002\.jpg: image bytes could not be decoded"):
         capture.image("cam00", 2)
-    with pytest.raises(CaptureError, match=r"images/cam01/00000003\.png: not in the capture"):
+    with pytest.raises(CaptureError, match=r"images/cam01/00000003\.png or \.jpg: not in the capture"):
         capture.image("cam01", 3)
     with pytest.raises(CaptureError, match=r"unknown camera 'cam9'"):
         capture.mask("cam9", 0)

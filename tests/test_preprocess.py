@@ -3,8 +3,11 @@ cameras, protocol splits, bad input fails cleanly and nothing is left half-writt
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -15,6 +18,7 @@ from thuman4_fixture import look_at, write_thuman4
 
 from pig.config import load_section
 from pig.data.capture import Capture
+from pig.data.images import read_image
 from pig.data.projection_check import View, overlap_counts, silhouette
 from pig.data.raw import CaptureError
 from pig.data.splits import SplitConfig, make_split
@@ -147,7 +151,8 @@ def test_good_capture_passes_and_camera_to_world_calibration_is_named(tmp_path, 
     assert _run(swapped, tmp_path / "out_swapped") == 1
     err = capsys.readouterr().err
     assert "calibration looks camera-to-world; invert it" in err and "cam00" in err
-    assert not (tmp_path / "out_swapped").exists() and _leftovers(tmp_path) == []
+    assert f"the unfinished work is kept in {tmp_path / '.out_swapped.partial'}" in err
+    assert not (tmp_path / "out_swapped").exists() and _leftovers(tmp_path) == [".out_swapped.partial"]
 
 
 def test_body_parameters_that_miss_the_masks_fail_with_the_general_message(tmp_path, capsys):
@@ -172,7 +177,7 @@ def test_failed_rerun_keeps_the_previous_output_intact(tmp_path, capsys):
     assert _run(root, out) == 1
     assert "images/cam01/00000002.jpg: image bytes could not be decoded" in capsys.readouterr().err
     after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
-    assert after == before and _leftovers(tmp_path) == []
+    assert after == before and _leftovers(tmp_path) == [".out.partial"]
     (root / "images" / "cam01" / "00000002.jpg").unlink()
     (root / "missing_img_files.txt").write_text("images\\cam01\\00000002.jpg\n")
     assert _run(root, out) == 0  # a later good run replaces it
@@ -208,6 +213,12 @@ BAD_RUNS = {
     "missing root": (lambda t, r: ["--input", str(t / "absent")], r"absent not found: put the subject there"),
     "unknown profile key": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  scael: 2\n")],
                             r"section 'preprocess': unknown key\(s\) \['scael'\]"),
+    "unknown encoding": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  train_encoding: webp\n")],
+                         r"section 'preprocess'\.train_encoding: expected one of \['jpeg', 'png'\], found 'webp'"),
+    "JPEG quality out of range": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  jpeg_quality: 101\n")],
+                                  r"preprocess\.jpeg_quality must be in 1\.\.100, found 101"),
+    "PNG level out of range": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  png_compression: 10\n")],
+                               r"preprocess\.png_compression must be a zlib level in 0\.\.9, found 10"),
     "no novel-view camera": (
         lambda t, r: ["--dataset", _dataset_yaml(t, "name: x\nsplit:\n  novel_view_count: 0\n")],
         r"dataset\.yaml: section 'split': the novel_view split is empty \(0 cameras, 2 frames; novel_view_cameras: "
@@ -274,6 +285,237 @@ def test_split_errors(cfg, message):
         make_split([f"cam{i}" for i in range(4)], list(range(10)), cfg, "s", "where.yaml")
 
 
+# -- encodings and resuming ----------------------------------------------------------------------------------
+
+RESUME_SPLIT = SplitConfig(novel_view_cameras=["cam02"], novel_pose_frames=[4, 4])
+# train: cam00, cam01 x frames 0..3; held out: cam02 x 0..3 (novel view) and every camera at frame 4 (novel pose)
+TRAIN = [(c, f) for c in ("cam00", "cam01") for f in range(4)]
+HELD_OUT = [("cam02", f) for f in range(4)] + [(c, 4) for c in ("cam00", "cam01", "cam02")]
+TIMINGS = ("seconds", "seconds_images", "seconds_check", "images_resumed")
+
+
+class Killed(BaseException):
+    """Stands for SIGKILL: not an Exception, so nothing on its way out handles it."""
+
+
+@pytest.fixture(scope="module")
+def resume_raw(tmp_path_factory) -> Path:
+    return write_thuman4(tmp_path_factory.mktemp("resume") / "s", cameras=3, frames=5, width=160, height=128)
+
+
+def _preprocess(raw_root: Path, out: Path, **cfg) -> dict:
+    return preprocess_capture(Thuman4Capture(raw_root), out, PreprocessConfig(**cfg), raw_root / "body_model.npz",
+                              RESUME_SPLIT, "s", progress=False)
+
+
+def _die_after(monkeypatch, views: int, dead_pid: int) -> None:
+    """The writer dies while writing the image of view `views` + 1 (one worker: views complete in order), leaving
+    half of its bytes in a temporary as a killed process of id `dead_pid` would."""
+    from pig.stages import preprocess
+
+    calls = iter(range(1, 10**6))
+    real = preprocess._write_encoded
+
+    def dying(path, image, suffix, params):
+        if next(calls) == 2 * views + 1:
+            data = cv2.imencode(suffix, image, params)[1]
+            path.with_name(f".{path.stem}.{dead_pid}.tmp{suffix}").write_bytes(data[:data.size // 2].tobytes())
+            raise Killed
+        real(path, image, suffix, params)
+
+    monkeypatch.setattr(preprocess, "_write_encoded", dying)
+
+
+def _count_writes(monkeypatch) -> list[Path]:
+    from pig.stages import preprocess
+
+    written, real = [], preprocess._write_encoded
+    monkeypatch.setattr(preprocess, "_write_encoded", lambda path, *args: written.append(path) or real(path, *args))
+    return written
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _jpeg_header(data: bytes) -> tuple[int, list[int]]:
+    """(first luminance quantiser, sampling factor byte of each component) from a baseline JPEG's DQT and SOF0."""
+    dqt, sof = data.index(b"\xff\xdb"), data.index(b"\xff\xc0")
+    components = data[sof + 9]
+    return data[dqt + 5], [data[sof + 11 + 3 * i] for i in range(components)]
+
+
+def test_training_views_are_jpeg_444_held_out_views_and_masks_lossless_png(resume_raw, tmp_path):
+    _preprocess(resume_raw, tmp_path / "out", jpeg_quality=80)
+    out = tmp_path / "out"
+    for cam, frame in TRAIN + HELD_OUT:
+        names = sorted(p.name for p in (out / "images" / cam).glob(f"{frame:08d}.*"))
+        assert names == [f"{frame:08d}.{'jpg' if (cam, frame) in TRAIN else 'png'}"], (cam, frame)
+        mask = (out / "masks" / cam / f"{frame:08d}.png").read_bytes()
+        assert mask[24:26] == b"\x01\x00"  # IHDR: bit depth 1, greyscale
+    # IJG quality scaling of the standard luminance table's first entry (16): q >= 50 -> (16 (200 - 2q) + 50) / 100.
+    quantiser, sampling = _jpeg_header((out / "images" / "cam00" / "00000001.jpg").read_bytes())
+    assert quantiser == (16 * (200 - 2 * 80) + 50) // 100 and sampling == [0x11, 0x11, 0x11]
+    _preprocess(resume_raw, tmp_path / "swapped", train_encoding="png", heldout_encoding="jpeg", jpeg_quality=95)
+    assert _jpeg_header((tmp_path / "swapped" / "images" / "cam02" / "00000000.jpg").read_bytes())[0] == 2
+    assert (tmp_path / "swapped" / "images" / "cam00" / "00000000.png").is_file()
+
+
+@pytest.fixture
+def dead_pid() -> int:
+    child = subprocess.Popen(["true"])
+    child.wait()
+    return child.pid
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(resume_raw, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("uninterrupted") / "out"
+    return out, _preprocess(resume_raw, out, workers=1)
+
+
+def _partial_views(partial: Path) -> set[tuple[str, int]]:
+    """The views whose image and mask lie complete in the work folder; asserts nothing else is under a final name."""
+    views = set()
+    for mask in (p for p in partial.glob("masks/*/*.png") if not p.name.startswith(".")):
+        images = list(mask.parent.parent.parent.glob(f"images/{mask.parent.name}/{mask.stem}.*"))
+        assert len(images) == 1, mask
+        read_image(images[0])  # strict: a cut-short file fails
+        read_image(mask, cv2.IMREAD_GRAYSCALE)
+        views.add((mask.parent.name, int(mask.stem)))
+    images = {(p.parent.name, int(p.stem)) for p in partial.glob("images/*/*.*") if not p.name.startswith(".")}
+    assert images == views  # the image before the mask, nothing after the last complete view
+    return views
+
+
+def test_killed_run_resumes_without_partial_files_to_the_bytes_of_an_uninterrupted_run(
+        resume_raw, uninterrupted, tmp_path, monkeypatch, dead_pid):
+    out = tmp_path / "out"
+    _die_after(monkeypatch, 5, dead_pid)
+    with pytest.raises(Killed):
+        _preprocess(resume_raw, out, workers=1)
+    partial = tmp_path / ".out.partial"
+    assert not out.exists() and _leftovers(tmp_path) == [".out.partial"]
+    done = _partial_views(partial)
+    assert len(done) >= 5  # the worker may finish a view it had taken before the main thread saw the error
+    half_written = [p.name for p in partial.rglob(".*") if p.parent.parent.name == "images"]
+    assert len(half_written) == 1 and half_written[0].endswith(".tmp.jpg")
+    (tmp_path / f".out.{dead_pid}.tmp").mkdir()  # an orphan of another killed run: removed, the work folder kept
+
+    monkeypatch.undo()
+    written = _count_writes(monkeypatch)
+    report = _preprocess(resume_raw, out, workers=2, min_iou=0.5)  # neither changes an image: the work is resumed
+    assert report["images_resumed"] == len(done) and report["images"] == len(TRAIN + HELD_OUT)
+    assert len(written) == 2 * (report["images"] - len(done))
+    assert not {(p.parent.name, int(p.stem)) for p in written} & done
+    assert _leftovers(tmp_path) == [] and [p for p in out.rglob(".*") if p.name != ".pig-stage"] == []
+
+    reference, expected = uninterrupted
+    got, want = _files(out), _files(reference)
+    assert sorted(got) == sorted(want) and any(name.endswith(".jpg") for name in got)
+    assert {k for k in got if got[k] != want[k]} == {"report.json"}
+    resumed = json.loads(got.pop("report.json"))
+    assert resumed["projection_check"]["cameras"] == expected["projection_check"]["cameras"]
+    assert {k: v for k, v in resumed.items() if k not in (*TIMINGS, "config", "projection_check")} == \
+        {k: v for k, v in expected.items() if k not in (*TIMINGS, "config", "projection_check")}
+
+
+KILLED_CHILD = """
+import os, signal, sys
+from pathlib import Path
+import cv2
+from pig.data.splits import SplitConfig
+from pig.data.thuman4 import Thuman4Capture
+from pig.stages import preprocess
+from pig.stages._io import atomic_path
+
+raw, out, views = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
+calls, real = iter(range(1, 10**6)), preprocess._write_encoded
+
+def dying(path, image, suffix, params):
+    if next(calls) == 2 * views + 1:  # SIGKILL in the middle of writing an image
+        data = cv2.imencode(suffix, image, params)[1]
+        with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+            handle.write(data[:data.size // 2])
+            handle.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+    real(path, image, suffix, params)
+
+preprocess._write_encoded = dying
+preprocess.preprocess_capture(Thuman4Capture(raw), out, preprocess.PreprocessConfig(workers=1), raw / "body_model.npz",
+                              SplitConfig(novel_view_cameras=["cam02"], novel_pose_frames=[4, 4]), "s", progress=False)
+"""
+
+
+@pytest.mark.slow
+def test_sigkilled_run_resumes_to_the_bytes_of_an_uninterrupted_run(resume_raw, uninterrupted, tmp_path):
+    out = tmp_path / "out"
+    child = subprocess.run([sys.executable, "-c", KILLED_CHILD, str(resume_raw), str(out), "6"],
+                           env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    assert child.returncode == -9, child.stderr
+    assert not out.exists() and sorted(_leftovers(tmp_path)) == [".out.lock", ".out.partial"]
+    assert len(_partial_views(tmp_path / ".out.partial")) == 6
+    assert len([p for p in (tmp_path / ".out.partial").rglob(".*.tmp.*")]) == 1  # the image cut short, hidden
+    report = _preprocess(resume_raw, out, workers=2)
+    assert report["images_resumed"] == 6 and _leftovers(tmp_path) == []
+    got, want = _files(out), _files(uninterrupted[0])
+    assert {k for k in got.keys() | want.keys() if got.get(k) != want.get(k)} == {"report.json"}
+
+
+def _replace_raw_image(root: Path) -> dict:
+    image = root / "images" / "cam01" / "00000000.jpg"
+    image.write_bytes((root / "images" / "cam01" / "00000001.jpg").read_bytes())  # another frame's bytes
+    return {}
+
+
+@pytest.mark.parametrize("change", [lambda root: {"jpeg_quality": 80}, _replace_raw_image],
+                         ids=["jpeg quality", "raw image replaced"])
+def test_changed_settings_start_the_unfinished_work_afresh(resume_raw, tmp_path, monkeypatch, dead_pid, change):
+    raw, out = tmp_path / "s", tmp_path / "out"
+    shutil.copytree(resume_raw, raw)
+    _die_after(monkeypatch, 4, dead_pid)
+    with pytest.raises(Killed):
+        _preprocess(raw, out, workers=1)
+    assert len(_partial_views(tmp_path / ".out.partial")) >= 4
+    monkeypatch.undo()
+    written = _count_writes(monkeypatch)
+    report = _preprocess(raw, out, **change(raw))
+    assert report["images_resumed"] == 0 and len(written) == 2 * report["images"]
+    quality = report["config"]["jpeg_quality"]
+    assert all(_jpeg_header(p.read_bytes())[0] == (16 * (200 - 2 * quality) + 50) // 100
+               for p in out.glob("images/*/*.jpg"))
+    assert _leftovers(tmp_path) == []
+
+
+def test_a_second_run_on_the_same_output_is_refused_while_the_first_lives(resume_raw, tmp_path, capsys):
+    out = tmp_path / "out"
+    script = ("import sys, time\nfrom pathlib import Path\nfrom pig.stages._outputs import output_lock\n"
+              "with output_lock(Path(sys.argv[1]), 'preprocess'):\n    print('held', flush=True)\n    time.sleep(60)\n")
+    holder = subprocess.Popen([sys.executable, "-c", script, str(out)], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert holder.stdout.readline() == "held\n"
+        assert _run(resume_raw, out) == 1
+        assert (f"preprocess: error: {out}: another preprocess run (pid {holder.pid}) is writing it; wait for it to "
+                f"finish or stop it, then run again (lock file {tmp_path / '.out.lock'})") in capsys.readouterr().err
+        assert not out.exists() and _leftovers(tmp_path) == [".out.lock"]
+    finally:
+        holder.kill()
+        holder.wait()
+    assert _run(resume_raw, out) == 0  # the killed holder's lock file is no obstacle
+    assert _leftovers(tmp_path) == [] and (out / "report.json").is_file()
+
+
+def test_a_foreign_folder_where_the_work_would_be_kept_is_left_alone(resume_raw, tmp_path, capsys):
+    mine = tmp_path / ".out.partial" / "notes.txt"
+    mine.parent.mkdir()
+    mine.write_text("not the stage's")
+    assert _run(resume_raw, tmp_path / "out") == 1
+    assert (f"preprocess: error: {mine.parent}: a folder the preprocess stage did not write lies where it keeps its "
+            "unfinished work; move it away") in capsys.readouterr().err
+    assert [p.name for p in mine.parent.iterdir()] == ["notes.txt"] and _leftovers(tmp_path) == [".out.partial"]
+
+
 # -- the synthetic capture (engineer A's generator, `test` profile) -------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -300,8 +542,6 @@ def test_synthetic_capture_passes_with_iou_above_0_9_on_every_camera(synthetic_r
 
 @pytest.mark.slow
 def test_synthetic_capture_with_camera_to_world_calibration_fails_naming_it(synthetic_raw, tmp_path, capsys):
-    import shutil
-
     raw = tmp_path / "subject00"
     shutil.copytree(synthetic_raw, raw)
     calibration = json.loads((raw / "calibration.json").read_text())
@@ -311,4 +551,9 @@ def test_synthetic_capture_with_camera_to_world_calibration_fails_naming_it(synt
     (raw / "calibration.json").write_text(json.dumps(calibration))
     assert _run(raw, tmp_path / "capture", "--dataset", "synthetic") == 1
     assert "calibration looks camera-to-world; invert it" in capsys.readouterr().err
-    assert not (tmp_path / "capture").exists() and _leftovers(tmp_path) == []
+    assert not (tmp_path / "capture").exists() and _leftovers(tmp_path) == [".capture.partial"]
+    # Fixed, the rerun starts afresh (a raw file changed) and passes.
+    shutil.copy(synthetic_raw / "calibration.json", raw / "calibration.json")
+    assert _run(raw, tmp_path / "capture", "--dataset", "synthetic") == 0
+    report = json.loads((tmp_path / "capture" / "report.json").read_text())
+    assert report["images_resumed"] == 0 and report["images"] > 0 and _leftovers(tmp_path) == []

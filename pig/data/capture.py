@@ -1,7 +1,8 @@
 """Loader of a preprocessed capture (the preprocess stage's output): cameras, SMPL-X parameters, splits, frames.
 
 Images and masks are decoded on first use and kept in memory as uint8 (bounded LRU cache) for the
-fit stage's random access; data preparation, no paper equation.
+fit stage's random access; data preparation, no paper equation. An image is `{frame:08d}.png` or, lossy,
+`.jpg` (the training views since preprocess writes JPEG); a mask is `{frame:08d}.png`.
 """
 from __future__ import annotations
 
@@ -23,9 +24,13 @@ from pig.body.model import BodyModel
 from pig.body.params import ParamsError, SmplxParams
 from pig.data.images import read_image
 from pig.data.raw import CaptureError
+from pig.data.rectify import composite
 from pig.data.splits import SPLITS
 
 CAMERA_KEYS = ("K", "R", "T", "width", "height")
+IMAGE_SUFFIXES = (".png", ".jpg")
+LOSSY_SUFFIXES = (".jpg",)
+MASK_SUFFIX = ".png"
 
 
 @dataclass
@@ -62,7 +67,10 @@ class Capture:
         self.params = params
         self.split = split
         self.background = background  # (3,) float32 RGB the images are composited on
-        self._available = {c: _frame_ids(root / "images" / c) & _frame_ids(root / "masks" / c) for c in cameras}
+        self._background_u8 = np.round(background * 255).astype(np.uint8)
+        self._files = {c: {"images": _frame_files(root / "images" / c, IMAGE_SUFFIXES),
+                           "masks": _frame_files(root / "masks" / c, (MASK_SUFFIX,))} for c in cameras}
+        self._available = {c: files["images"].keys() & files["masks"].keys() for c, files in self._files.items()}
         self._cache: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self._cache_bytes = 0
         self._cache_limit = int(cache_mb * 2**20)
@@ -123,7 +131,7 @@ class Capture:
                 folder = self.root / kind / name
                 entries = sorted(os.scandir(folder), key=lambda e: e.name) if folder.is_dir() else []
                 for entry in entries:
-                    if entry.name.endswith(".png"):
+                    if entry.name.endswith(IMAGE_SUFFIXES if kind == "images" else MASK_SUFFIX):
                         files.update(f"{kind}/{name}/{entry.name} {entry.stat().st_size}\n".encode())
         return {
             "cameras": cameras.hexdigest(),
@@ -185,9 +193,11 @@ class Capture:
                 return self._cache[key]
         if camera not in self.cameras:
             raise CaptureError(f"{self.root / 'cameras.json'}: unknown camera {camera!r}; cameras are {list(self.cameras)}")
-        path = self.root / kind / camera / f"{frame:08d}.png"
         if not self.has(camera, frame):
-            raise CaptureError(f"{path}: not in the capture (camera {camera} has no image and mask for frame {frame})")
+            names = "png or .jpg" if kind == "images" else MASK_SUFFIX[1:]
+            raise CaptureError(f"{self.root / kind / camera / f'{frame:08d}'}.{names}: not in the capture (camera "
+                               f"{camera} has no image and mask for frame {frame})")
+        path = self.root / kind / camera / self._files[camera][kind][frame]
         flag = cv2.IMREAD_COLOR if kind == "images" else cv2.IMREAD_GRAYSCALE
         data = read_image(path, flag)
         cam = self.cameras[camera]
@@ -196,6 +206,8 @@ class Capture:
                                f"{cam.width}x{cam.height}")
         if kind == "images":
             data = cv2.cvtColor(data, cv2.COLOR_BGR2RGB)
+            if path.suffix in LOSSY_SUFFIXES:  # compression ringing crosses the silhouette: restore the background
+                data = composite(data, self._read("masks", camera, frame) > 127, self._background_u8)
         data.setflags(write=False)  # shared by every caller of the cache
         with self._lock:
             self._cache[key] = data
@@ -206,10 +218,21 @@ class Capture:
         return data
 
 
-def _frame_ids(folder: Path) -> set[int]:
+def _frame_files(folder: Path, suffixes: tuple[str, ...]) -> dict[int, str]:
+    """Frame id -> file name of the frames in `folder`; CaptureError if a frame has two files."""
+    files: dict[int, str] = {}
     if not folder.is_dir():
-        return set()
-    return {int(p.stem) for p in folder.iterdir() if p.suffix == ".png" and p.stem.isdigit()}
+        return files
+    for entry in os.scandir(folder):
+        stem, suffix = os.path.splitext(entry.name)
+        if suffix not in suffixes or not stem.isdigit():
+            continue
+        frame = int(stem)
+        if frame in files:
+            raise CaptureError(f"{folder}: frame {frame} has two files, {files[frame]} and {entry.name}; a capture "
+                               "holds one per frame (rerun preprocess into a new folder)")
+        files[frame] = entry.name
+    return files
 
 
 def _json(path: Path) -> dict:

@@ -89,16 +89,21 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     tmp.mkdir()
     try:
         yield tmp
-        if path.exists():
-            old = _temporary_dir(path, "old")
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old)
-        else:
-            os.replace(tmp, path)
+        replace_dir(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def replace_dir(built: Path, path: Path) -> None:
+    """Rename the folder `built` to `path`; an older folder there is removed only once the new one is in place."""
+    if path.exists():
+        old = _temporary_dir(path, "old")
+        os.replace(path, old)
+        os.replace(built, path)
+        shutil.rmtree(old)
+    else:
+        os.replace(built, path)
 
 
 def write_text(path: str | Path, text: str) -> None:

@@ -3,18 +3,24 @@
 Every folder a stage writes gets a hidden marker file naming the stage. A stage replaces only what lies
 in a folder marked with its own name (or in a new or empty folder); anything else needs `--overwrite`.
 An output that is, contains or lies inside an input, or that is an existing file, is always refused.
-Checks run before anything is written.
+Checks run before anything is written. A long stage may build its folder resumably (`resumable_dir`), one
+run per output at a time.
 """
 from __future__ import annotations
 
+import fcntl
 import json
+import os
+import shutil
+import sys
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from pig.stages._io import atomic_dir, remove_orphans, write_json
+from pig.stages._io import _temporary_dir, atomic_dir, remove_orphans, replace_dir, write_json
 
 MARKER = ".pig-stage"
+PARTIAL_RECORD = ".pig-partial"  # in a resumable work folder: its stage and the settings its files were made with
 
 
 class OutputError(ValueError):
@@ -84,6 +90,80 @@ def build_dir(output: Path, stage: str) -> Iterator[Path]:
     with atomic_dir(output) as tmp:
         yield tmp
         write_json(tmp / MARKER, {"stage": stage})
+
+
+@contextmanager
+def output_lock(output: Path, stage: str) -> Iterator[None]:
+    """Hold the lock file `.{name}.lock` beside `output` for the block; OutputError naming the holder's pid if
+    another process holds it. An flock, which the kernel releases when its holder dies: no stale lock after a kill."""
+    path = output.with_name(f".{output.name}.lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        handle = open(path, "a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "unknown"
+            handle.close()
+            raise OutputError(f"{output}: another {stage} run (pid {holder}) is writing it; wait for it to finish or "
+                              f"stop it, then run again (lock file {path})") from None
+        try:  # the previous holder may have removed the file between our open and our lock: lock the current one
+            current = os.fstat(handle.fileno()).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            current = False
+        if current:
+            break
+        handle.close()
+    try:
+        handle.truncate(0)
+        handle.write(str(os.getpid()))
+        handle.flush()
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+        handle.close()
+
+
+def _partial_record(partial: Path) -> dict | None:
+    try:
+        return json.loads((partial / PARTIAL_RECORD).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+@contextmanager
+def resumable_dir(output: Path, stage: str, settings: dict) -> Iterator[Path]:
+    """Like `build_dir`, but the folder is built at `.{name}.partial` beside `output`, which a killed or failed run
+    leaves behind: a rerun with the same `settings` (JSON; everything its files depend on) finds the files written
+    so far there, a rerun with other settings starts it afresh. Files in it must be written atomically. One run
+    per output at a time (`output_lock`). Call `claim_dir` first."""
+    with output_lock(output, stage):
+        remove_orphans(output)
+        partial = output.with_name(f".{output.name}.partial")
+        record = {"stage": stage, "settings": json.loads(json.dumps(settings))}
+        if partial.is_dir():
+            found = _partial_record(partial)
+            if not isinstance(found, dict) or found.get("stage") != stage:
+                raise OutputError(f"{partial}: a folder the {stage} stage did not write lies where it keeps its "
+                                  "unfinished work; move it away")
+            if found != record:
+                shutil.rmtree(partial)
+        if not partial.is_dir():
+            fresh = _temporary_dir(output)  # renamed once the record is in: a partial folder always has one
+            shutil.rmtree(fresh, ignore_errors=True)
+            fresh.mkdir()
+            write_json(fresh / PARTIAL_RECORD, record)
+            os.replace(fresh, partial)
+        try:
+            yield partial
+        except BaseException:
+            print(f"{stage}: the unfinished work is kept in {partial}; a rerun with the same settings continues "
+                  "from it", file=sys.stderr)
+            raise
+        write_json(partial / MARKER, {"stage": stage})
+        replace_dir(partial, output)
+        (output / PARTIAL_RECORD).unlink()
 
 
 def claim_files(folder: str | Path, names: Iterable[str], stage: str, inputs: Iterable[str | Path] = (),

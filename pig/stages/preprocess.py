@@ -1,12 +1,16 @@
 """Preprocess stage: raw capture -> undistorted, masked, resized frames, cameras, SMPL-X parameters, splits, report.
 
 Writes the directory `pig.data.capture.Capture.load` reads (FORMATS.md layouts in, interfaces' layout out)
-into a temporary folder renamed at the end, after the projection sanity check passed; no paper equation.
+into a work folder renamed at the end, after the projection sanity check passed; no paper equation. Training
+views are JPEG (4:4:4) and held-out views PNG by default, masks 1-bit PNG (benchmarks/encoding.py measured the
+choice). A killed or failed run resumes: a rerun with the same settings keeps the images already written.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import os
 import shutil
 import sys
 import time
@@ -22,15 +26,19 @@ from tqdm import tqdm
 
 from pig.body.model import BodyModel, BodyModelError
 from pig.config import REPO_ROOT, ConfigError, load_profile, load_section, load_yaml
+from pig.data.capture import MASK_SUFFIX
 from pig.data.formats import FORMATS, capture_format, open_capture
+from pig.data.images import read_image
 from pig.data.projection_check import Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.stages._cli import add_common_arguments, run_cli
-from pig.stages._outputs import build_dir, claim_dir
+from pig.stages._io import atomic_path
+from pig.stages._outputs import claim_dir, resumable_dir
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
+HELD_OUT = ("novel_view", "novel_pose")
 
 
 @dataclass
@@ -38,8 +46,15 @@ class PreprocessConfig:
     scale: float = 1.0  # resize factor applied after undistortion
     max_side: int | None = None  # cap on the longer output side in pixels (None: no cap)
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # RGB in [0, 1] outside the mask
-    workers: int = 2  # threads decoding, undistorting and encoding frames (OpenCV releases the GIL)
-    png_compression: int = 1  # zlib level of the written PNGs (1: fast)
+    # Threads decoding, undistorting and encoding frames; None: one per usable core. Threads suffice: a worker
+    # holds the GIL for under 3 % of its time, the rest is OpenCV, numpy and file I/O (benchmarks/preprocess.py).
+    workers: int | None = None
+    # Training views lossy, held-out views (the evaluation's ground truth) lossless: a 24 x 2500 THuman4 subject
+    # is ~12 GB, against ~20 GB as all PNG (benchmarks/encoding.py). Masks are always 1-bit PNG.
+    train_encoding: Literal["jpeg", "png"] = "jpeg"
+    heldout_encoding: Literal["png", "jpeg"] = "png"
+    jpeg_quality: int = 95  # 4:4:4 chroma; 42.8 dB inside the mask against the float result at 1330 x 1150
+    png_compression: int = 1  # zlib level of the written PNGs (1: fast; 6 saves 10 % at twice the time)
     check_frames: int = 3  # frames per camera sampled for the projection check
     # Tolerances of the check's IoU at the body's depth (pig/data/projection_check.py): body outside the mask
     # (calibration and fitting error) and mask outside the body (loose garments, hair). The synthetic capture's
@@ -73,28 +88,101 @@ def _sample_frames(frames: list[int], count: int) -> list[int]:
     return [frames[i] for i in picks]
 
 
-def _write_png(path: Path, image: np.ndarray, compression: int) -> None:
-    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, compression]):
-        raise CaptureError(f"{path}: OpenCV could not write the PNG (disk full or not writable?)")
+def _encoders(cfg: PreprocessConfig) -> dict[str, tuple[str, list[int]]]:
+    """Encoding name -> (suffix, cv2.imencode parameters)."""
+    return {"jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality,
+                              cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]),
+            "png": (".png", [cv2.IMWRITE_PNG_COMPRESSION, cfg.png_compression]),
+            "mask": (MASK_SUFFIX, [cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, cfg.png_compression])}
+
+
+def _check_config(cfg: PreprocessConfig) -> np.ndarray:
+    """The background as uint8 RGB; ConfigError for values OpenCV would reject or silently clamp."""
+    background = np.round(np.clip(np.asarray(cfg.background, dtype=np.float64), 0, 1) * 255).astype(np.uint8)
+    if background.shape != (3,):
+        raise ConfigError(f"preprocess.background must be 3 numbers (RGB in [0, 1]), found {cfg.background}")
+    if not 1 <= cfg.jpeg_quality <= 100:
+        raise ConfigError(f"preprocess.jpeg_quality must be in 1..100, found {cfg.jpeg_quality}")
+    if cfg.workers is not None and cfg.workers < 1:
+        raise ConfigError(f"preprocess.workers must be at least 1 (or null: one per core), found {cfg.workers}")
+    if not 0 <= cfg.png_compression <= 9:
+        raise ConfigError(f"preprocess.png_compression must be a zlib level in 0..9, found {cfg.png_compression}")
+    return background
+
+
+def _write_encoded(path: Path, image: np.ndarray, suffix: str, params: list[int]) -> None:
+    """Encode and write atomically: a killed run leaves a hidden temporary, never a cut-short image."""
+    ok, data = cv2.imencode(suffix, image, params)
+    if not ok:
+        raise CaptureError(f"{path}: OpenCV could not encode the image")
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        handle.write(data)
+
+
+def _written(work: Path, camera: str, names: dict[int, str]) -> set[int]:
+    """Frames of `camera` whose image (named by `names`) and mask an earlier run already wrote into `work`;
+    removes the temporaries killed writers left there (the caller holds the output's lock)."""
+    present = {}
+    for kind in ("images", "masks"):
+        folder = work / kind / camera
+        folder.mkdir(parents=True, exist_ok=True)
+        present[kind] = set()
+        for entry in os.scandir(folder):
+            if entry.name.startswith("."):
+                os.unlink(entry.path)
+            else:
+                present[kind].add(entry.name)
+    return {f for f, name in names.items()
+            if name in present["images"] and f"{f:08d}{MASK_SUFFIX}" in present["masks"]}
+
+
+def _raw_manifest(source: Path) -> str:
+    """SHA-256 of the path, size and modification time of every file of the raw capture (a file or a folder):
+    any raw file replaced or edited between a killed run and its rerun starts the work afresh. Stats only."""
+    files = [source] if source.is_file() else sorted(
+        Path(folder) / name for folder, _, names in os.walk(source) for name in names)
+    digest = hashlib.sha256()
+    for path in files:
+        stat = path.stat()
+        digest.update(f"{path} {stat.st_size} {stat.st_mtime_ns}\n".encode())
+    return digest.hexdigest()
+
+
+def _settings(raw: RawCapture, cfg: PreprocessConfig, split: dict, pairs: list[tuple[str, int]]) -> dict:
+    """Everything the written images depend on: a resumed run reuses them only when this is unchanged."""
+    def camera(cam):
+        entry = {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "size": [cam.width, cam.height]}
+        if cam.color_correction is not None:
+            entry["color_correction"] = np.asarray(cam.color_correction).tolist()
+        return entry
+
+    keys = ("scale", "max_side", "background", "mask_resize", "train_encoding", "heldout_encoding", "jpeg_quality",
+            "png_compression")
+    source = Path(raw.source).resolve()
+    return {"format": type(raw).__name__, "source": str(source), "raw_files": _raw_manifest(source),
+            "config": {key: getattr(cfg, key) for key in keys},
+            "cameras": {name: camera(cam) for name, cam in raw.cameras.items()}, "split": split,
+            "views": hashlib.sha256(json.dumps(pairs).encode()).hexdigest()}
 
 
 def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfig, body_model: str | Path,
                        split_cfg: SplitConfig, subject: str, split_source: str = "split",
                        progress: bool = True, overwrite: bool = False, inputs: tuple[Path, ...] = ()) -> dict:
-    """Write the preprocessed capture of `raw` to `output` (atomically) and return its report.
+    """Write the preprocessed capture of `raw` to `output` (atomically, resuming an earlier run's unfinished work
+    with the same settings) and return its report.
 
     `output` may replace only an earlier preprocessed capture unless `overwrite`; it never overlaps the raw
     capture, the body model or the other `inputs`."""
     start = time.perf_counter()
     output = claim_dir(output, "preprocess", (raw.source, body_model, *inputs), overwrite)
-    background = np.round(np.clip(np.asarray(cfg.background, dtype=np.float64), 0, 1) * 255).astype(np.uint8)
-    if background.shape != (3,):
-        raise ConfigError(f"preprocess.background must be 3 numbers (RGB in [0, 1]), found {cfg.background}")
+    background = _check_config(cfg)
+    encoders = _encoders(cfg)
     body_model = Path(body_model)
     cameras = list(raw.cameras)
     split = make_split(cameras, raw.frames, split_cfg, subject, split_source)
     require_views(split, raw.has_frame, split_source, raw.source)
     needed = {(c, f) for part in split.values() for c in part["cameras"] for f in part["frames"]}
+    held_out = {(c, f) for name in HELD_OUT for c in split[name]["cameras"] for f in split[name]["frames"]}
     pairs = [(c, f) for c in cameras for f in raw.frames if (c, f) in needed and raw.has_frame(c, f)]
     frames = sorted({f for part in split.values() for f in part["frames"]})
     model = BodyModel.from_file(body_model, dtype=torch.float64)
@@ -112,33 +200,45 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
                       torch.from_numpy(sel.expression), torch.from_numpy(sel.transl)).vertices.numpy()
     vertices = dict(zip(check_ids, posed))
 
-    with build_dir(output, "preprocess") as tmp:
-        for cam in cameras:
-            (tmp / "images" / cam).mkdir(parents=True)
-            (tmp / "masks" / cam).mkdir(parents=True)
+    def encoding(cam: str, frame: int) -> str:
+        return cfg.heldout_encoding if (cam, frame) in held_out else cfg.train_encoding
 
-        def work(rectify: Rectifier, frame: int) -> np.ndarray | None:
+    with resumable_dir(output, "preprocess", _settings(raw, cfg, split, pairs)) as work:
+        def write(rectify: Rectifier, frame: int) -> tuple[int, np.ndarray] | None:
             cam = rectify.camera.name
             image, mask = rectify(raw.read_image(cam, frame), raw.read_mask(cam, frame), background)
-            _write_png(tmp / "images" / cam / f"{frame:08d}.png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
-                       cfg.png_compression)
-            _write_png(tmp / "masks" / cam / f"{frame:08d}.png", mask.astype(np.uint8) * 255, cfg.png_compression)
-            return mask if frame in checked[cam] else None
+            suffix, params = encoders[encoding(cam, frame)]
+            _write_encoded(work / "images" / cam / f"{frame:08d}{suffix}", cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
+                           suffix, params)
+            # The mask last: a frame counts as written (`_written`) once both files are there.
+            _write_encoded(work / "masks" / cam / f"{frame:08d}{MASK_SUFFIX}", mask.astype(np.uint8) * 255,
+                           *encoders["mask"])
+            return (frame, mask) if frame in checked[cam] else None
 
-        check_masks: dict[str, list[np.ndarray]] = {c: [] for c in checked}
+        names = {c: {f: f"{f:08d}{encoders[encoding(c, f)][0]}" for f in fs} for c, fs in by_camera.items()}
+        done = {c: _written(work, c, names[c]) for c in cameras}
+        check_masks: dict[str, dict[int, np.ndarray]] = {c: {} for c in checked}
         threads = cv2.getNumThreads()
         cv2.setNumThreads(1)  # parallel over images instead; OpenCV's own pool would oversubscribe the cores
-        pool = ThreadPoolExecutor(max(1, cfg.workers))
-        bar = tqdm(total=len(pairs), desc="preprocess", unit="img", disable=not progress)
+        pool = ThreadPoolExecutor(cfg.workers or len(os.sched_getaffinity(0)))
+        resumed = sum(map(len, done.values()))
+        bar = tqdm(total=len(pairs), initial=resumed, desc="preprocess", unit="img", disable=not progress)
         images_start = time.perf_counter()
         try:
-            # Camera by camera, so only one camera's undistortion maps are alive at a time.
+            # Camera by camera, so only one camera's undistortion maps are alive at a time. pool.map keeps the
+            # check masks only: memory does not grow with the capture.
             for cam, cam_frames in by_camera.items():
-                rectify = Rectifier(raw.cameras[cam], *sizes[cam], cfg.mask_resize)
-                for mask in pool.map(lambda frame: work(rectify, frame), cam_frames):
-                    if mask is not None:
-                        check_masks[cam].append(mask)
-                    bar.update()
+                todo = [f for f in cam_frames if f not in done[cam]]
+                if todo:
+                    rectify = Rectifier(raw.cameras[cam], *sizes[cam], cfg.mask_resize)
+                    for result in pool.map(lambda frame: write(rectify, frame), todo):
+                        if result is not None:
+                            check_masks[cam][result[0]] = result[1]
+                        bar.update()
+                for frame in checked.get(cam, ()):  # written by an earlier run: read back for the check
+                    if frame in done[cam]:
+                        path = work / "masks" / cam / f"{frame:08d}{MASK_SUFFIX}"
+                        check_masks[cam][frame] = read_image(path, cv2.IMREAD_GRAYSCALE) > 127
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
             cv2.setNumThreads(threads)
@@ -147,15 +247,16 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
 
         cameras_json = {c: {"K": v.K.tolist(), "R": v.R.tolist(), "T": v.T.tolist(), "width": v.width,
                             "height": v.height} for c, v in views.items()}
-        (tmp / "cameras.json").write_text(json.dumps(cameras_json, indent=1))
+        (work / "cameras.json").write_text(json.dumps(cameras_json, indent=1))
         row = {f: i for i, f in enumerate(raw.frames)}
         params = raw.params.select([row[f] for f in frames])
-        params.save(tmp / "smplx.npz", frame_ids=frames)
-        (tmp / "split.json").write_text(json.dumps(split, indent=1))
-        shutil.copyfile(body_model, tmp / "body_model.npz")
+        params.save(work / "smplx.npz", frame_ids=frames)
+        (work / "split.json").write_text(json.dumps(split, indent=1))
+        shutil.copyfile(body_model, work / "body_model.npz")
 
         check_start = time.perf_counter()
-        check = check_projection({c: views[c] for c in checked}, checked, check_masks, vertices,
+        check = check_projection({c: views[c] for c in checked}, checked,
+                                 {c: [check_masks[c][f] for f in fs] for c, fs in checked.items()}, vertices,
                                  model.faces.numpy(), Tolerance(cfg.check_body_tolerance_m,
                                                                 cfg.check_garment_tolerance_m), cfg.min_iou)
         report = {
@@ -167,15 +268,21 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
             "cameras": len(cameras),
             "frames": len(frames),
             "images": len(pairs),
+            "images_resumed": resumed,
             "missing": len(needed) - len(pairs),
+            "megabytes": {kind: round(_folder_bytes(work / kind) / 1e6, 3) for kind in ("images", "masks")},
             "background": background.tolist(),
             "projection_check": check,
             "seconds": round(time.perf_counter() - start, 3),
             "seconds_images": round(images_s, 3),
             "seconds_check": round(time.perf_counter() - check_start, 3),
         }
-        (tmp / "report.json").write_text(json.dumps(report, indent=1))
+        (work / "report.json").write_text(json.dumps(report, indent=1))
     return report
+
+
+def _folder_bytes(folder: Path) -> int:
+    return sum(entry.stat().st_size for sub in os.scandir(folder) for entry in os.scandir(sub.path))
 
 
 def _dataset(value: str | None) -> dict:
