@@ -114,3 +114,16 @@ def test_truncated_image_in_a_dna_smc_names_the_file_and_hdf5_path(tmp_path):
             dna.read_image("1", 2)
         with pytest.raises(CaptureError, match=r"0012_01_annots\.smc:/Mask/2/mask/1: truncated or corrupt JPEG"):
             dna.read_mask("2", 1)
+
+
+def test_a_cut_render_read_for_evaluation_is_an_error_naming_it(tmp_path):
+    """The evaluate stage's render reader decodes strictly too: a cut PNG is no grey-rowed image."""
+    from pig.stages._io import read_png, write_png
+
+    image = np.random.default_rng(0).random((24, 32, 3))
+    path = tmp_path / "render.png"
+    write_png(path, image)
+    assert np.abs(read_png(path) - image).max() <= 0.5 / 255 + 1e-6  # RGB order and scale kept
+    path.write_bytes(path.read_bytes()[: path.stat().st_size * 3 // 4])
+    with pytest.raises(CaptureError, match=f"{path}: truncated PNG"):
+        read_png(path)

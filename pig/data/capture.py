@@ -97,6 +97,9 @@ class Capture:
             part = split.get(name)
             if not isinstance(part, dict) or not {"cameras", "frames"} <= set(part):
                 raise CaptureError(f"{root / 'split.json'}: expected '{name}': {{cameras: [...], frames: [...]}}")
+            if not part["cameras"] or not part["frames"]:
+                raise CaptureError(f"{root / 'split.json'}: split '{name}' is empty ({len(part['cameras'])} cameras, "
+                                   f"{len(part['frames'])} frames); rerun preprocess, which refuses such a split")
             unknown = [c for c in part["cameras"] if c not in cameras]
             if unknown:
                 raise CaptureError(f"{root / 'split.json'}: split '{name}' names camera(s) {unknown} not in "

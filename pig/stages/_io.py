@@ -159,7 +159,6 @@ def write_figure(path: str | Path, figure, dpi: float | None = None) -> None:
 
 def read_png(path: str | Path) -> np.ndarray:
     """8-bit RGB PNG -> (H, W, 3) float32 in [0, 1]."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise FileNotFoundError(f"{path}: missing or not a readable image (expected an RGB PNG written by the render stage)")
-    return image[..., ::-1].astype(np.float32) / 255
+    from pig.data.images import read_image  # strict: a cut-off render is an error naming the file, not grey rows
+
+    return cv2.cvtColor(read_image(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255

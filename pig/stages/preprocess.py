@@ -34,7 +34,7 @@ from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.stages._cli import add_common_arguments, run_cli
-from pig.stages._io import atomic_path
+from pig.stages._io import atomic_path, write_json
 from pig.stages._outputs import claim_dir, resumable_dir
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
@@ -247,11 +247,11 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
 
         cameras_json = {c: {"K": v.K.tolist(), "R": v.R.tolist(), "T": v.T.tolist(), "width": v.width,
                             "height": v.height} for c, v in views.items()}
-        (work / "cameras.json").write_text(json.dumps(cameras_json, indent=1))
+        write_json(work / "cameras.json", cameras_json)
         row = {f: i for i, f in enumerate(raw.frames)}
         params = raw.params.select([row[f] for f in frames])
         params.save(work / "smplx.npz", frame_ids=frames)
-        (work / "split.json").write_text(json.dumps(split, indent=1))
+        write_json(work / "split.json", split)
         shutil.copyfile(body_model, work / "body_model.npz")
 
         check_start = time.perf_counter()
@@ -277,7 +277,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
             "seconds_images": round(images_s, 3),
             "seconds_check": round(time.perf_counter() - check_start, 3),
         }
-        (work / "report.json").write_text(json.dumps(report, indent=1))
+        write_json(work / "report.json", report)  # a non-finite IoU or radius is written as null
     return report
 
 
