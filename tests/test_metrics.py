@@ -105,6 +105,17 @@ def test_frechet_distance_singular_covariances(rng):
     assert abs(value) < 1e-8 and note == "FID over 10 images (< 2000): biased high, compare only at equal N"
 
 
+def _reference_distance(features_x, features_y, linear: dict) -> torch.Tensor:
+    """LPIPS's distance from two lists of feature maps: unit-normalised channels, squared difference weighted
+    by the linear layers, averaged over pixels, summed over layers."""
+    total = 0
+    for k, (a, b) in enumerate(zip(features_x, features_y)):
+        a = a / (a.norm(dim=1, keepdim=True) + 1e-10)
+        b = b / (b.norm(dim=1, keepdim=True) + 1e-10)
+        total = total + F.conv2d((a - b) ** 2, linear[f"lin{k}.model.1.weight"]).mean(dim=(1, 2, 3))
+    return total
+
+
 def _reference_alex_lpips(backbone: dict, linear: dict, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """LPIPS written out layer by layer from the two state_dicts, independently of pig.metrics.lpips."""
     shift = torch.tensor([-0.030, -0.088, -0.188]).view(1, 3, 1, 1)
@@ -124,12 +135,7 @@ def _reference_alex_lpips(backbone: dict, linear: dict, x: torch.Tensor, y: torc
         out.append(h)
         return out
 
-    total = 0
-    for k, (a, b) in enumerate(zip(taps(x), taps(y))):
-        a = a / (a.norm(dim=1, keepdim=True) + 1e-10)
-        b = b / (b.norm(dim=1, keepdim=True) + 1e-10)
-        total = total + F.conv2d((a - b) ** 2, linear[f"lin{k}.model.1.weight"]).mean(dim=(1, 2, 3))
-    return total
+    return _reference_distance(taps(x), taps(y), linear)
 
 
 def test_lpips_loads_torchvision_and_lpips_files(tmp_path, empty_hub):
@@ -171,12 +177,7 @@ def _reference_vgg_lpips(backbone: dict, linear: dict, x: torch.Tensor, y: torch
             out.append(h)
         return out
 
-    total = 0
-    for k, (a, b) in enumerate(zip(taps(x), taps(y))):
-        a = a / (a.norm(dim=1, keepdim=True) + 1e-10)
-        b = b / (b.norm(dim=1, keepdim=True) + 1e-10)
-        total = total + F.conv2d((a - b) ** 2, linear[f"lin{k}.model.1.weight"]).mean(dim=(1, 2, 3))
-    return total
+    return _reference_distance(taps(x), taps(y), linear)
 
 
 def _write_lpips_weights(net: str, hub, linear_path) -> tuple[dict, dict]:
