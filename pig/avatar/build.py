@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from numpy.lib import format as npy_format
 
-from pig.body.model import NUM_JOINTS, REQUIRED_KEYS, BodyModel, _dense
+from pig.body.model import HAND_MEAN_KEYS, NUM_JOINTS, REQUIRED_KEYS, BodyModel, _dense
 from pig.body.npz import read_npz
 from pig.body.params import SmplxParams
 from pig.config import from_dict
@@ -27,7 +27,7 @@ from .model import AvatarModel
 
 
 # The arrays of an SMPL-X npz that `BodyModel` reads.
-BODY_MODEL_KEYS = (*REQUIRED_KEYS, "hands_meanl", "hands_meanr")
+BODY_MODEL_KEYS = (*REQUIRED_KEYS, *HAND_MEAN_KEYS)
 
 
 def body_model_npz(path: Path) -> bytes:

@@ -16,14 +16,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from pig.config import load_profile, load_section
+from pig.config import load_profile, load_section, resolve_device
 from pig.data.exr import write_exr
 from pig.field.precondition import PreconditionedTensor
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_json, write_png
 from pig.stages._outputs import build_dir, claim_dir
-from pig.stages.evaluate import EvaluateConfig, resolve_device
+from pig.stages.evaluate import EvaluateConfig
 
 BLACK = (0.0, 0.0, 0.0)  # evaluation background (paper protocol: black, ground truth masked)
 
