@@ -136,6 +136,21 @@ def nan_for_null(record: dict) -> dict:
     return {key: math.nan if value is None else value for key, value in record.items()}
 
 
+def read_record(path: str | Path, expected: str) -> dict:
+    """A flat JSON object written by `write_json` (an evaluate summary, a render timing), null read back as NaN;
+    a missing, unreadable or non-object file is an error naming `path` and the `expected` record."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing; expected {expected}")
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not valid JSON ({err}); expected {expected}") from None
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: expected {expected} as a JSON object, found {type(record).__name__}")
+    return nan_for_null(record)
+
+
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """(H, W, 3) RGB float in [0, 1] or uint8 -> 8-bit PNG."""
     path = Path(path)

@@ -7,7 +7,6 @@ read one batch at a time and FID keeps running feature statistics, so memory doe
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import re
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ from pig.metrics.psnr import psnr
 from pig.metrics.ssim import ssim
 from pig.metrics.weights import WeightsMissing
 from pig.stages._cli import add_common_arguments, run_cli
-from pig.stages._io import nan_for_null, read_png, write_json, write_text
+from pig.stages._io import read_png, read_record, write_json, write_text
 from pig.stages._outputs import claim_files
 
 
@@ -137,7 +136,7 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     for level in levels:
         level_dir = split_dir / f"lod{level}"
         table, summary = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device, fid_note)
-        timing = _read_json(level_dir / "timing.json")
+        timing = read_record(level_dir / "timing.json", "the render stage's timing record (splats, model_mb, fps, device)")
         summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
@@ -149,20 +148,6 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         if summary["fid_note"]:
             print(f"[evaluate] {split} lod{level}: {summary['fid_note']}")
     return written
-
-
-def _read_json(path: Path) -> dict:
-    """The render stage's timing record, null (written for NaN) read back as NaN."""
-    expected = "the render stage's timing record (splats, model_mb, fps, device)"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing; expected {expected}")
-    try:
-        record = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: not valid JSON ({err}); expected {expected}") from None
-    if not isinstance(record, dict):
-        raise ValueError(f"{path}: expected {expected} as a JSON object, found {type(record).__name__}")
-    return nan_for_null(record)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,7 +10,6 @@ Markdown shows them in the FID cell, as `123.40 (N=36, biased)`.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from pig.stages._cli import add_common_arguments, run_cli  # noqa: E402
-from pig.stages._io import nan_for_null, write_figure, write_text  # noqa: E402
+from pig.stages._io import read_record, write_figure, write_text  # noqa: E402
 from pig.stages._outputs import claim_files  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
@@ -37,13 +36,7 @@ def read_summaries(paths: list[Path]) -> pd.DataFrame:
         path = Path(path)
         if path.parent.name != "metrics" or len(path.parts) < 4:
             raise ValueError(f"{path}: expected a summary at .../{{subject}}/{{variant}}/metrics/{{split}}_lod{{l}}.json")
-        try:
-            summary = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-            raise ValueError(f"{path}: not a readable evaluate summary ({err})") from None
-        if not isinstance(summary, dict):
-            raise ValueError(f"{path}: expected an evaluate summary (a JSON object), found {type(summary).__name__}")
-        summary = nan_for_null(summary)  # the evaluate stage writes NaN as null
+        summary = read_record(path, "an evaluate summary")  # the evaluate stage writes NaN as null
         missing = {"split", "lod", "splats", *METRICS} - set(summary)
         if missing:
             raise ValueError(f"{path}: summary lacks keys {sorted(missing)}")
