@@ -106,7 +106,7 @@ def child(capture: str, profile: str, device: str, out: str) -> None:
     import pandas as pd
     import torch
 
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     fit(Path(capture), Path(out), profile, device=device)
     log = pd.read_csv(Path(out) / "train_log.csv")

@@ -1,7 +1,7 @@
 """GPU benchmark of the fit stage at the paper's sizes: milliseconds per iteration, data wait, peak GPU memory, where the time goes.
 
 Generates a synthetic capture at the paper profile's image size (fewer frames, so it finishes in
-minutes), preprocesses it, runs `pig.stages.fit` with the `paper` profile (100k anchors, 4 views x 5
+minutes), preprocesses it, runs `pig.avatar.training.fit` (the fit stage) with the `paper` profile (100k anchors, 4 views x 5
 timesteps, 5 x 512 decoders) once per `--variant` on that same capture, in this process, and prints
 one table row per variant with its ratio to the first, and the time each iteration waited for its training
 views (train_log.csv's data_wait_ms: decoding, staging and the copy to the GPU that prefetching did not hide).
@@ -12,8 +12,15 @@ Run on the GPU machine:
             --variant factorized:precond.knn_solver=factorized --variant cg:precond.knn_solver=cg \
             --variant no_prefetch:fit.prefetch=0
 
-A variant is `NAME:section.key=value,...` (values in YAML) over the profile; the key `torch.tf32`
-lets float32 matmuls use TF32 during that fit. After the timed iterations, `--profile-phases N`
+A variant is `NAME:section.key=value,...` (values in YAML) over the profile, e.g. the speed levers
+`fit.precision=bf16`, `fit.compile=true` (pig/avatar/training.py).
+
+`--budget B` (fixed-budget mode): each variant fits for B seconds of training wall time (`fit.time_budget_s`;
+the learning-rate schedule's progress is the time fraction), then renders and evaluates novel view and novel
+pose at every LOD with the render and evaluate stages, and prints their PSNR and SSIM per LOD.
+`--eval-every N` keeps the fit's held-out evaluations every N iterations and prints the held-out PSNR of every
+variant at each of them with its difference to the first variant's (the parity check of two paths);
+`--plot PATH` draws those curves. After the timed iterations, `--profile-phases N`
 runs N more with the device synchronised around each part of an iteration (`fit(phase=...)`) and
 around the model's submodules, and prints median ms per part; `--profile-ops N` runs N more under
 torch.profiler and prints the operators that take the most device time.
@@ -23,6 +30,7 @@ from __future__ import annotations
 import argparse
 import csv
 import gc
+import math
 import shutil
 import statistics
 import sys
@@ -37,7 +45,7 @@ import yaml
 from pig.config import load_profile
 from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.stages._io import write_json
-from pig.stages.fit import fit
+from pig.avatar.training import fit
 from pig.stages.preprocess import main as preprocess
 
 # Submodules of the avatar timed inside the "model" phase (the outermost one when they nest).
@@ -45,19 +53,15 @@ MODULES = {"LatentGrid": "model.grid", "PreconditionedTensor": "model.anchor_sol
            "AnchorDecoder": "model.decoders", "BodyRefiner": "model.refiner"}
 
 
-def parse_variant(text: str) -> tuple[str, dict, bool]:
-    """`NAME:section.key=value,...` -> (name, {section: {key: value}}, tf32)."""
+def parse_variant(text: str) -> tuple[str, dict]:
+    """`NAME:section.key=value,...` -> (name, {section: {key: value}})."""
     name, _, body = text.partition(":")
     overrides: dict[str, dict] = defaultdict(dict)
-    tf32 = False
     for item in filter(None, body.split(",")):
         key, _, value = item.partition("=")
         section, _, field = key.strip().partition(".")
-        if section == "torch" and field == "tf32":
-            tf32 = bool(yaml.safe_load(value))
-        else:
-            overrides[section][field] = yaml.safe_load(value)
-    return name, dict(overrides), tf32
+        overrides[section][field] = yaml.safe_load(value)
+    return name, dict(overrides)
 
 
 class PhaseTimer:
@@ -111,28 +115,31 @@ class PhaseTimer:
             hook.remove()
 
 
-def run_variant(args, name: str, overrides: dict, tf32: bool, profile: dict, capture: Path) -> dict:
+def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) -> dict:
     varied = yaml.safe_load(yaml.safe_dump(profile))
     for section, values in overrides.items():
         varied.setdefault(section, {}).update(values)
     total = args.iterations + args.profile_phases + args.profile_ops
     # Same profile, run length cut; no held-out evaluation or checkpoint inside the timing.
-    varied["fit"].update(iterations=total, eval_every=10**9, checkpoint_minutes=10**6)
+    varied["fit"].update(iterations=total, eval_every=args.eval_every or 10**9, checkpoint_minutes=10**6)
+    if args.budget:
+        varied["fit"].update(iterations=10**7, time_budget_s=args.budget)
     path = args.workdir / f"profile_{name}.yaml"
     path.write_text(yaml.safe_dump(varied))
     out_dir = args.workdir / f"fit_{name}"
     shutil.rmtree(out_dir, ignore_errors=True)
 
-    times: list[float] = []
+    marks: dict[int, float] = {}
     timer = PhaseTimer() if args.profile_phases else None
     ops = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA])
     phase_start = args.iterations
     ops_start = args.iterations + args.profile_phases
 
     def tick(iteration: int) -> None:
-        torch.cuda.synchronize()
-        if iteration <= args.iterations:
-            times.append(time.perf_counter())
+        # The device is waited for only where the timed window starts and ends, so that the host may run ahead.
+        if iteration in (args.warmup, args.iterations):
+            torch.cuda.synchronize()
+            marks[iteration] = time.perf_counter()
         if timer is not None:
             timer.end_iteration()
             timer.active = phase_start <= iteration < ops_start
@@ -144,34 +151,79 @@ def run_variant(args, name: str, overrides: dict, tf32: bool, profile: dict, cap
     gc.collect()
     torch.cuda.empty_cache()
     torch.cuda.reset_peak_memory_stats()
-    tf32_before = torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = tf32
     t0 = time.perf_counter()
     try:
         fit(capture, out_dir, str(path), device="cuda", on_iteration=tick, **({"phase": timer} if timer else {}))
     finally:
-        torch.backends.cuda.matmul.allow_tf32 = tf32_before
         if timer is not None:
             timer.close()
-    steps = [b - a for a, b in zip(times[args.warmup:], times[args.warmup + 1:])]
-    # The data wait of the same iterations (the first timed step ends iteration warmup + 2).
+    timed = args.iterations - args.warmup
+    ms = 1000 * (marks[args.iterations] - marks[args.warmup]) / timed
+    # The data wait of the same iterations (rows of the train log, each a mean over its logging window).
     with open(out_dir / "train_log.csv", newline="") as file:
         waits = [float(row["data_wait_ms"]) for row in csv.DictReader(file)
-                 if args.warmup + 2 <= int(row["iteration"]) <= args.iterations]
+                 if args.warmup < int(row["iteration"]) <= args.iterations] or [math.nan]
     result = {
-        "name": name, "overrides": overrides, "tf32": tf32, "iterations_timed": len(steps),
-        "ms_median": 1000 * statistics.median(steps), "ms_mean": 1000 * statistics.mean(steps),
+        "name": name, "overrides": overrides, "iterations_timed": timed, "ms_per_iteration": ms,
         "wait_ms_median": statistics.median(waits), "wait_ms_mean": statistics.mean(waits),
-        "wait_share": statistics.mean(waits) / (1000 * statistics.mean(steps)),
+        "wait_share": statistics.mean(waits) / ms,
         "peak_gib": torch.cuda.max_memory_allocated() / 2**30, "fit_total_s": time.perf_counter() - t0,
         "log": str(out_dir / "train_log.csv"),
     }
     if timer is not None:
         result["phases_ms"] = timer.medians_ms()
+    if args.budget:
+        result["budget"] = evaluate_budget_run(args, name, out_dir, path, capture)
+    if args.eval_every:
+        with open(out_dir / "train_log.csv", newline="") as file:
+            result["heldout"] = {int(row["iteration"]): float(row["heldout_psnr"]) for row in csv.DictReader(file) if row["heldout_psnr"]}
     if args.profile_ops:
         table = ops.key_averages().table(sort_by="device_time_total", row_limit=args.op_rows, max_name_column_width=70)
         result["ops_table"] = table
     return result
+
+
+def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capture: Path) -> dict:
+    """Render and evaluate novel view and novel pose at every LOD; {split: {lod: {psnr, ssim, images}}} + iterations."""
+    from pig.stages.evaluate import main as evaluate
+    from pig.stages.render import main as render
+    from pig.stages._io import read_record
+
+    with open(fit_dir / "train_log.csv", newline="") as file:
+        last = list(csv.DictReader(file))[-1]
+    out: dict = {"iterations": int(last["iteration"]), "train_s": float(last["wall_s"])}
+    t0 = time.perf_counter()
+    for split in ("novel_view", "novel_pose"):
+        renders = args.workdir / f"renders_{name}" / split
+        metrics = args.workdir / f"metrics_{name}"
+        render(["--checkpoint", str(fit_dir / "avatar.pt"), "--capture", str(capture), "--split", split, "--output", str(renders),
+                "--profile", str(profile_path), "--overwrite"])
+        evaluate(["--capture", str(capture), "--renders", str(renders), "--split", split, "--output", str(metrics),
+                  "--profile", str(profile_path), "--overwrite"])
+        out[split] = {}
+        for record in sorted(metrics.glob(f"{split}_lod*.json")):
+            summary = read_record(record, "evaluate summary")
+            out[split][int(summary["lod"])] = {k: summary[k] for k in ("psnr", "ssim", "images")}
+    out["evaluate_s"] = time.perf_counter() - t0
+    return out
+
+
+def plot_heldout(results: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in results:
+        steps = sorted(r["heldout"])
+        ax.plot(steps, [r["heldout"][s] for s in steps], marker="o", label=r["name"])
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("held-out novel-view PSNR [dB] (finest LOD)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
 
 
 def main(argv=None) -> int:
@@ -182,13 +234,16 @@ def main(argv=None) -> int:
     parser.add_argument("--cameras", type=int, default=None, help="captured cameras (default: the profile's)")
     parser.add_argument("--reuse-capture", action="store_true", help="keep an existing capture in --workdir")
     parser.add_argument("--iterations", type=int, default=60, help="timed iterations, warm-up included")
-    parser.add_argument("--warmup", type=int, default=5, help="iterations left out of the timing")
+    parser.add_argument("--warmup", type=int, default=5, help="iterations left out of the timing (compilation happens there)")
     parser.add_argument("--supersample", type=int, default=1)
     parser.add_argument("--variant", action="append", default=[], help="NAME:section.key=value,... (repeatable)")
     parser.add_argument("--profile-phases", type=int, default=0, help="iterations timed per phase after the timed ones")
     parser.add_argument("--profile-ops", type=int, default=0, help="iterations under torch.profiler after those")
     parser.add_argument("--op-rows", type=int, default=30)
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
+    parser.add_argument("--budget", type=float, default=None, help="fixed-budget mode: seconds of training per variant")
+    parser.add_argument("--eval-every", type=int, default=None, help="held-out evaluation every N iterations (parity)")
+    parser.add_argument("--plot", type=Path, default=None, help="with --eval-every: plot of the held-out PSNR curves")
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("fit_gpu: no CUDA device", file=sys.stderr)
@@ -211,7 +266,7 @@ def main(argv=None) -> int:
                     "--format", "thuman4", "--body-model", str(raw / "body_model.npz"), "--no-progress"])
         stamps["preprocess_s"] = time.perf_counter() - t0
 
-    variants = [parse_variant(v) for v in args.variant] or [("profile", {}, False)]
+    variants = [parse_variant(v) for v in args.variant] or [("profile", {})]
     results = [run_variant(args, *v, profile, capture) for v in variants]
 
     header = [
@@ -226,12 +281,12 @@ def main(argv=None) -> int:
     width = max(len(k) for k, _ in header)
     for key, value in header:
         print(f"{key:<{width}}  {value}")
-    base = results[0]["ms_median"]
-    print("\n| variant | overrides | ms/it median | mean | vs first | data wait ms median | mean | share | peak GiB | timed |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    base = results[0]["ms_per_iteration"]
+    print("\n| variant | overrides | ms/it | vs first | data wait ms median | mean | share | peak GiB | timed |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
-        over = ", ".join(f"{s}.{k}={v}" for s, kv in r["overrides"].items() for k, v in kv.items()) + (" tf32" if r["tf32"] else "")
-        print(f"| {r['name']} | {over or '-'} | {r['ms_median']:.1f} | {r['ms_mean']:.1f} | {r['ms_median'] / base:.3f} "
+        over = ", ".join(f"{s}.{k}={v}" for s, kv in r["overrides"].items() for k, v in kv.items())
+        print(f"| {r['name']} | {over or '-'} | {r['ms_per_iteration']:.1f} | {r['ms_per_iteration'] / base:.3f} "
               f"| {r['wait_ms_median']:.2f} | {r['wait_ms_mean']:.2f} | {100 * r['wait_share']:.1f} % "
               f"| {r['peak_gib']:.2f} | {r['iterations_timed']} |")
     if args.profile_phases:
@@ -243,6 +298,27 @@ def main(argv=None) -> int:
             print(f"| {n} | " + " | ".join(f"{r['phases_ms'].get(n, 0.0):.1f}" for r in results) + " |")
         top = [n for n in names if not n.startswith("model.")]
         print("| sum of phases | " + " | ".join(f"{sum(r['phases_ms'].get(n, 0.0) for n in top):.1f}" for r in results) + " |")
+    if args.budget:
+        levels = sorted({lod for r in results for lod in r["budget"]["novel_view"]})
+        print(f"\nFixed budget {args.budget:.0f} s of training: PSNR dB / SSIM per LOD (0 = coarsest)")
+        print("| variant | iterations | " + " | ".join(f"{split} lod{l}" for split in ("novel_view", "novel_pose") for l in levels) + " |")
+        print("|---|---|" + "---|" * (2 * len(levels)))
+        for r in results:
+            b = r["budget"]
+            cells = [f"{b[split][l]['psnr']:.2f} / {b[split][l]['ssim']:.4f}" for split in ("novel_view", "novel_pose") for l in levels]
+            print(f"| {r['name']} | {b['iterations']} | " + " | ".join(cells) + " |")
+    if args.eval_every:
+        steps = sorted(results[0]["heldout"])
+        print("\nHeld-out novel-view PSNR (finest LOD) per evaluation; difference to " + results[0]["name"])
+        print("| iteration | " + " | ".join(r["name"] for r in results) + " | " +
+              " | ".join(f"{r['name']} - {results[0]['name']}" for r in results[1:]) + " |")
+        print("|---|" + "---|" * (2 * len(results) - 1))
+        for step in steps:
+            values = [r["heldout"].get(step, float("nan")) for r in results]
+            print(f"| {step} | " + " | ".join(f"{v:.3f}" for v in values) + " | " +
+                  " | ".join(f"{v - values[0]:+.3f}" for v in values[1:]) + " |")
+        if args.plot is not None:
+            plot_heldout(results, args.plot)
     for r in results:
         if "ops_table" in r:
             print(f"\nOperators by device time, variant {r['name']} ({args.profile_ops} iterations):\n{r['ops_table']}")

@@ -131,7 +131,7 @@ def _profile(tmp_path, avatar=None, **fit):
 def test_short_fit_learns_and_resumes_to_the_same_result(small_capture, tmp_path):
     import pandas as pd
 
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     profile = _profile(tmp_path, iterations=30, eval_every=15, checkpoint_minutes=0.0)
     capture = small_capture
@@ -172,7 +172,7 @@ def test_leftover_checkpoint_of_another_fit_is_not_resumed(small_capture, tmp_pa
     import shutil
 
     from pig.avatar.checkpoint import CheckpointError
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     other = tmp_path / "other"
     shutil.copytree(small_capture, other)
@@ -245,7 +245,7 @@ def _record_batches(monkeypatch) -> list:
 def test_killed_and_resumed_fit_draws_the_same_batches_and_weights(small_capture, tmp_path, monkeypatch):
     """A fit killed after iteration 3 and resumed trains on the batches of an uninterrupted one, iteration for
     iteration, and ends with bit-identical weights."""
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     profile = _profile(tmp_path, {"num_anchors": 300}, iterations=7, eval_every=100, checkpoint_minutes=0.0, views=2,
                        timesteps=2, prefetch=3, loader_workers=2, view_cache=4)
@@ -278,7 +278,7 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     from pig.data.capture import Capture
     from pig.data.raw import CaptureError
     from pig.stages._cli import error_line
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     capture_dir = tmp_path / "capture"
     shutil.copytree(small_capture, capture_dir)
@@ -323,7 +323,7 @@ def test_fit_without_training_images_names_the_capture(small_capture, tmp_path):
     import shutil
 
     from pig.data.raw import CaptureError
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     capture_dir = tmp_path / "capture"
     shutil.copytree(small_capture, capture_dir)

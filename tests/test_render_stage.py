@@ -17,7 +17,7 @@ from pig.stages.render import render_split
 @pytest.fixture(scope="module")
 def fitted(small_capture, tmp_path_factory):
     from pig.config import load_profile
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     root = tmp_path_factory.mktemp("renderstage")
     profile = load_profile("test")

@@ -115,7 +115,7 @@ def test_a_corrupt_view_fails_the_batch_that_needs_it_with_its_path(small_captur
 
 def test_fit_config_refuses_negative_loader_settings():
     from pig.config import ConfigError
-    from pig.stages.fit import FitConfig
+    from pig.avatar.training import FitConfig
 
     with pytest.raises(ConfigError, match=r"^fit.loader_workers must be at least 1, found 0$"):
         FitConfig(loader_workers=0)

@@ -56,6 +56,15 @@ class TrainingBatch:
     views: list[list[ViewBatch]]  # per timestep, grouped by image size
     wait_s: float  # how long the caller blocked for this batch
 
+    def uniform(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int, int] | None:
+        """When every timestep has one view batch of the same size and camera count: (viewmats (K, V, 4, 4),
+        Ks (K, V, 3, 3), images (K V, H, W, 3), masks (K V, H, W), width, height) for one render of all; else None."""
+        batches = [step_batches[0] for step_batches in self.views if len(step_batches) == 1]
+        if len(batches) != len(self.views) or len({(b.width, b.height, len(b.cameras)) for b in batches}) != 1:
+            return None
+        return (torch.stack([b.viewmats for b in batches]), torch.stack([b.Ks for b in batches]),
+                torch.cat([b.images for b in batches]), torch.cat([b.masks for b in batches]), batches[0].width, batches[0].height)
+
 
 @dataclass(frozen=True)
 class Sampler:

@@ -94,10 +94,16 @@ def build_avatar(spec: dict) -> AvatarModel:
     return AvatarModel(cfg, body_model, params, spec["frame_ids"], attachment, canon, grid, anchors)
 
 
-def build_optimizers(model: AvatarModel, lr_decoders: float, lr_refine: float, precond: PrecondConfig) -> list[torch.optim.Optimizer]:
-    """[field optimiser (grid levels + anchors, per-level rates), Adam for decoders and refiner]."""
-    field = build_optimizer(precond.optimizer, field_param_groups(model.grid, model.anchors, precond))
+def build_optimizers(model: AvatarModel, lr_decoders: float, lr_refine: float, precond: PrecondConfig,
+                     fused: bool = False) -> list[torch.optim.Optimizer]:
+    """[field optimiser (grid levels + anchors, per-level rates), Adam for decoders and refiner].
+
+    `fused`: torch's fused Adam (one kernel for all tensors) wherever the step is plain Adam; the same update
+    as pig.field.optim.Adam up to float rounding."""
+    adam = (lambda groups: torch.optim.Adam(groups, fused=True)) if fused else Adam
+    field_groups = field_param_groups(model.grid, model.anchors, precond)
+    field = adam(field_groups) if fused and precond.optimizer == "adam" else build_optimizer(precond.optimizer, field_groups)
     groups = [{"name": "decoders", "params": list(model.decoder.parameters()), "lr": lr_decoders}]
     if model.refiner.net is not None:
         groups.append({"name": "refine", "params": list(model.refiner.parameters()), "lr": lr_refine})
-    return [field, Adam(groups)]
+    return [field, adam(groups)]

@@ -59,14 +59,26 @@ class AnchorDecoder(nn.Module):
             self.shared = None
             self.shape = mlp(inputs, width, layers, SHAPE_OUTPUTS, output_gain)
             self.colour = mlp(inputs, width, layers, colour_outputs, output_gain)
+        self.autocast = False
+
+    def set_precision(self, precision: str, compiled: bool = False) -> None:
+        """MLPs in "float32", "tf32" (set by the caller through torch.backends) or "bf16" autocast with float32
+        weights and outputs; `compiled` compiles them with torch.compile (same parameters and state dict)."""
+        self.autocast = precision == "bf16"
+        if compiled:
+            for net in (self.shared, self.shape, self.colour):
+                if net is not None:
+                    net.compile()
 
     def forward(self, y: torch.Tensor, log_scale_prior: float | torch.Tensor = 0.0) -> DecodedAnchors:
         """y (..., inputs) -> decoded attributes; scale = exp(output + log_scale_prior)."""
-        if self.shared is not None:
-            out = self.shared(y)
-            shape, colour = out[..., :SHAPE_OUTPUTS], out[..., SHAPE_OUTPUTS:]
-        else:
-            shape, colour = self.shape(y), self.colour(y)
+        with torch.autocast(y.device.type, torch.bfloat16, enabled=self.autocast):
+            if self.shared is not None:
+                out = self.shared(y)
+                shape, colour = out[..., :SHAPE_OUTPUTS], out[..., SHAPE_OUTPUTS:]
+            else:
+                shape, colour = self.shape(y), self.colour(y)
+        shape, colour = shape.to(y.dtype), colour.to(y.dtype)  # the parameterisations below in the input's precision
         offset = shape[..., 0:3] * self.offset_scale
         if not self.offsets:
             offset = torch.zeros_like(offset)

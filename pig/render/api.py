@@ -79,6 +79,38 @@ def render_gaussians(
     return RenderResult(color, alpha, depth)
 
 
+def render_timesteps(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    sh: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | Sequence[float],
+    backend: Backend = "auto",
+    max_pairs: int = DEFAULT_MAX_PAIRS,
+) -> RenderResult:
+    """`render_gaussians` for K sets of Gaussians (K, N, ...) each into its own C cameras (K, C, 4, 4) / (K, C, 3, 3):
+    results (K, C, H, W, .). gsplat renders all K x C images in one call; the CPU compositor one set at a time."""
+    if means.ndim != 3 or viewmats.ndim != 4 or viewmats.shape[0] != means.shape[0] or Ks.shape[:2] != viewmats.shape[:2]:
+        raise RenderError(f"render_timesteps: expected means (K, N, 3), viewmats (K, C, 4, 4) and Ks (K, C, 3, 3), got "
+                          f"{tuple(means.shape)}, {tuple(viewmats.shape)} and {tuple(Ks.shape)}")
+    for k in range(means.shape[0]):  # the checks of one set are those of every set
+        _check_gaussians(means[k], quats[k], scales[k], opacities[k], sh[k])
+        _check_cameras(viewmats[k], Ks[k], width, height, means)
+    count, c = viewmats.shape[:2]
+    if _choose_backend(backend, means) == "gsplat":
+        degree = _sh_degree(sh[0], None)
+        backgrounds = _backgrounds(background, c, means).expand(count, c, 3).contiguous()
+        return RenderResult(*render_gsplat(means, quats, scales, opacities, sh, viewmats, Ks, width, height, backgrounds, degree))
+    outs = [render_gaussians(means[k], quats[k], scales[k], opacities[k], sh[k], viewmats[k], Ks[k], width, height, background,
+                             backend=backend, max_pairs=max_pairs) for k in range(count)]
+    return RenderResult(*(torch.stack(parts) for parts in zip(*outs)))
+
+
 def _choose_backend(backend: str, means: Tensor) -> str:
     if backend not in ("auto", "gsplat", "cpu"):
         raise RenderError(f"backend must be 'auto', 'gsplat' or 'cpu', got {backend!r}")

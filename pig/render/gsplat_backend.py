@@ -24,7 +24,8 @@ def render_gsplat(
     backgrounds: Tensor,
     sh_degree: int,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """(color (C,H,W,3), alpha (C,H,W,1), expected depth (C,H,W,1)); backgrounds is (C, 3)."""
+    """(color (C,H,W,3), alpha (C,H,W,1), expected depth (C,H,W,1)); backgrounds is (C, 3). With leading batch
+    dimensions (means (K, N, 3), viewmats (K, C, 4, 4), backgrounds (K, C, 3), ...) the results get them too."""
     # gsplat loads (or builds) its CUDA extension at the first call, not at import.
     rendered, alpha, _ = rasterization(
         means,

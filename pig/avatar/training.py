@@ -1,0 +1,424 @@
+"""Fitting an avatar to a preprocessed capture: the optimisation of Section 3.5, resumable and logged.
+
+Eq. 15 per iteration on one random LOD, V views x K timesteps, with the per-group optimisers of Section 3.3
+(Eqs. 4-5); writes avatar.pt, train_log.csv and train_log.png. `fit` is the library entry of the fit stage
+(pig.stages.fit) and of the benchmarks.
+
+Speed levers (profile section `fit`, each off in the CPU profiles; benchmarks/NOTES.md, "Fit", measures each):
+`precision` (decoders in TF32 or bf16 autocast, float32 master weights), `compile` (torch.compile of the
+decoder MLPs and of the L1 + SSIM loss, with SSIM's blur as shifted sums that compile into one kernel),
+`batched_render` (one rasterizer call and one loss evaluation for all timesteps and views), `fused_adam`
+(torch's fused Adam kernels instead of a loop over tensors), `log_every` (loss terms read back to the host
+every N iterations, not every one). The KNN solve's host synchronisations are `precond.cg_check_every`.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import sys
+import time
+from contextlib import AbstractContextManager, contextmanager, nullcontext
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Literal
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSource
+from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
+from pig.avatar.checkpoint import load_training_state, save_checkpoint
+from pig.avatar.config import AvatarConfig
+from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss
+from pig.avatar.variants import variant_overrides
+from pig.body.params import SmplxParams
+from pig.config import ConfigError, load_profile, load_section, resolve_device
+from pig.data.capture import Capture
+from pig.data.raw import CaptureError
+from pig.field.latent_grid import FieldConfig
+from pig.field.precondition import PrecondConfig
+from pig.metrics.psnr import psnr
+from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
+from pig.stages._io import write_figure, write_text
+from pig.stages._outputs import claim_files
+
+LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr", "data_wait_ms"]
+OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
+PRECISIONS = ("float32", "tf32", "bf16")
+
+
+@dataclass
+class FitConfig:
+    """Profile section `fit`; defaults are the paper's (Section 3.6) with every speed lever off."""
+
+    iterations: int = 100_000
+    views: int = 4  # cameras per timestep per iteration
+    timesteps: int = 5  # timesteps per iteration
+    lr_decoders: float = 1e-3
+    lr_refine: float = 1e-4
+    # Learning-rate schedule over the run (every group): linear warm-up from 0 over `lr_warmup` iterations,
+    # then exponential decay to `lr_final` times the rate at the end (1.0: constant rates, the paper's).
+    # With `time_budget_s` the run's progress is the larger of its iteration and time fractions.
+    lr_warmup: int = 0
+    lr_final: float = 1.0
+    weight_l1: float = 8.0
+    weight_ssim: float = 2.0
+    weight_lpips: float = 2.0
+    lpips_net: str = "vgg"
+    lpips_backbone_weights: str | None = None  # None: the torch hub cache
+    lpips_linear_weights: str | None = None
+    band_radius_px: float = 3.0  # silhouette band radius at `band_reference_height` rows (THuman4)
+    band_reference_height: int = 1150
+    sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
+    eval_every: int = 1000  # held-out novel-view PSNR every this many iterations (and at the end)
+    eval_frames: int = 4  # training frames rendered from the novel-view cameras
+    checkpoint_minutes: float = 5.0
+    # Stop after this many seconds of training (the held-out evaluations not counted), before `iterations`
+    # if it comes first: the fixed-budget runs of benchmarks/fit_gpu.py. None: no limit.
+    time_budget_s: float | None = None
+    seed: int = 0
+    # Torch threads on the CPU; 0 keeps torch's default. One thread avoids OpenMP spin-waiting when
+    # the cores are shared (measured 10x faster under contention, benchmarks/NOTES.md).
+    cpu_threads: int = 0
+    # Training views are streamed (pig.avatar.batches): `loader_workers` threads decode them `prefetch`
+    # iterations ahead of the one trained on, through an LRU cache of `view_cache` decoded views. Host memory
+    # holds at most view_cache + (prefetch + 1) x views x timesteps decoded views (4 bytes a pixel), however
+    # long the capture. Views are drawn uniformly, so the cache saves decoding only where it holds much of
+    # the training set: 256 holds all of the cpu-demo capture's (180) and costs 1.5 GiB at THuman4's
+    # 1330 x 1150 (6.1 MB a view), a tenth of the fit rule's mem_mb.
+    view_cache: int = 256
+    prefetch: int = 2
+    loader_workers: int = 4
+    # Speed levers (module docstring).
+    precision: Literal["float32", "tf32", "bf16"] = "float32"
+    compile: bool = False
+    batched_render: bool = False
+    fused_adam: bool = False
+    log_every: int = 1
+
+    def __post_init__(self):
+        for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),
+                            ("lr_warmup", 0)):
+            if getattr(self, name) < least:
+                raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
+        if self.precision not in PRECISIONS:
+            raise ConfigError(f"fit.precision must be one of {PRECISIONS}, found {self.precision!r}")
+        if not 0 < self.lr_final <= 1:
+            raise ConfigError(f"fit.lr_final must lie in (0, 1], found {self.lr_final}")
+        if self.time_budget_s is not None and not self.time_budget_s > 0:
+            raise ConfigError(f"fit.time_budget_s must be positive or null, found {self.time_budget_s}")
+
+
+def lr_factor(progress: float, iteration: int, warmup: int, final: float) -> float:
+    """Multiplier of every base learning rate: warm-up over `warmup` iterations, then exp decay to `final` at
+    `progress` 1 (progress in [0, 1] is the fraction of the run done)."""
+    ramp = min(1.0, (iteration + 1) / warmup) if warmup > 0 else 1.0
+    return ramp * final ** min(max(progress, 0.0), 1.0)
+
+
+def perturb_params(params: SmplxParams, sigma: float, seed: int) -> SmplxParams:
+    """Zero-mean Gaussian noise of std `sigma` on the global + body joint angles and on the betas."""
+    if sigma <= 0:
+        return params
+    rng = np.random.default_rng(seed)
+    pose = params.full_pose.copy()
+    pose[:, :22] += rng.normal(scale=sigma, size=pose[:, :22].shape)
+    betas = params.betas + rng.normal(scale=sigma, size=params.betas.shape)
+    return SmplxParams(pose, betas, params.expression.copy(), params.transl.copy())
+
+
+def _load_lpips(cfg: FitConfig, device):
+    """The LPIPS module, or None with a one-line notice when its weights are absent."""
+    if cfg.weight_lpips <= 0:
+        return None
+    from pig.metrics.lpips import LPIPS, WeightsMissing
+
+    try:
+        net = LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights)
+    except WeightsMissing as err:
+        print(f"fit: LPIPS term left out of the loss ({err})", file=sys.stderr)
+        return None
+    return net.to(device).eval().requires_grad_(False)
+
+
+def _write_log(path: Path, rows: list[dict]) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=LOG_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(path, buffer.getvalue())
+
+
+def _plot_log(path: Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_loss, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
+    steps = [r for r in rows if r["loss"] != ""]
+    ax_loss.semilogy([r["iteration"] for r in steps], [r["loss"] for r in steps], lw=0.5)
+    ax_loss.set_xlabel("iteration")
+    ax_loss.set_ylabel("training loss (Eq. 15)")
+    evals = [r for r in rows if r["heldout_psnr"] != ""]
+    ax_psnr.plot([r["wall_s"] for r in evals], [r["heldout_psnr"] for r in evals], marker="o")
+    ax_psnr.set_xlabel("wall time [s]")
+    ax_psnr.set_ylabel("held-out novel-view PSNR [dB] (finest LOD)")
+    for ax in (ax_loss, ax_psnr):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    write_figure(path, fig, dpi=100)
+
+
+class HeldOut:
+    """Novel-view cameras on a few training frames: PSNR at the finest LOD, black background, masked truth.
+    The views are read when evaluated, at most `chunk` at a time."""
+
+    def __init__(self, capture: Capture, model, source: ViewSource, count: int, chunk: int):
+        split = capture.split["novel_view"]
+        frames = [f for f in split["frames"] if f in model.frame_ids]
+        picks = [frames[int(i)] for i in np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).round())] if frames else []
+        seen_by = {f: [c for c in split["cameras"] if capture.has(c, f)] for f in picks}
+        self.steps = [(model.timestep_of_frame(f), cams) for f, cams in seen_by.items() if cams]
+        self.source, self.chunk = source, chunk
+
+    @torch.no_grad()
+    def psnr(self, model, raster: RasterizerConfig) -> float:
+        if not self.steps:
+            return math.nan
+        values = []
+        black = torch.zeros(3, device=self.source.device)
+        for step, cameras in self.steps:
+            g = model(torch.tensor([step]), model.num_levels - 1)
+            for first in range(0, len(cameras), self.chunk):
+                [batches] = self.source.views(self.source.stage([(step, cameras[first:first + self.chunk])]))
+                for vb in batches:
+                    out = render_gaussians(g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], vb.viewmats, vb.Ks,
+                                           vb.width, vb.height, black, backend=raster.backend, max_pairs=raster.max_pairs)
+                    truth = vb.images * vb.masks[..., None]
+                    values += psnr(out.color.clamp(0, 1).permute(0, 3, 1, 2), truth.permute(0, 3, 1, 2)).tolist()
+        return float(np.mean(values))
+
+
+@contextmanager
+def _matmul_precision(precision: str):
+    """TF32 matmuls while fitting with precision "tf32"; the process's setting comes back afterwards."""
+    before = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = precision == "tf32"
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = before
+
+
+class LossTerms:
+    """Eq. 15 of renders (B, H, W, 3) against their views; L1 + SSIM compiled with `compiled`, LPIPS in bf16
+    autocast with precision "bf16"."""
+
+    def __init__(self, cfg: FitConfig, background: torch.Tensor, lpips, compiled: bool):
+        self.cfg, self.background, self.lpips = cfg, background, lpips
+        weights = (cfg.weight_l1, cfg.weight_ssim, 0.0)
+        blur = "shift" if compiled else "conv"
+        l1_ssim = lambda render, target, band: image_loss(render, target, band, background, weights, None, blur)
+        self._l1_ssim = torch.compile(l1_ssim) if compiled else l1_ssim
+
+    def __call__(self, render: torch.Tensor, images: torch.Tensor, masks: torch.Tensor, height: int) -> dict[str, torch.Tensor]:
+        band = boundary_band(masks, band_radius(height, self.cfg.band_radius_px, self.cfg.band_reference_height))
+        terms = dict(self._l1_ssim(render, images, band))
+        if self.lpips is not None and self.cfg.weight_lpips > 0:
+            x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
+            with torch.autocast(x.device.type, torch.bfloat16, enabled=self.cfg.precision == "bf16"):
+                terms["lpips"] = self.lpips(x, y).float().mean()
+            terms["total"] = terms["total"] + self.cfg.weight_lpips * terms["lpips"]
+        return terms
+
+
+def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: RasterizerConfig, background: torch.Tensor,
+                   batched: bool, phase: Callable[[str], AbstractContextManager]) -> dict[str, torch.Tensor]:
+    """Eq. 15 averaged over the views of one iteration's batch (each view weighs the same)."""
+    with phase("model"):
+        g = model(torch.tensor(batch.timesteps), batch.lod)
+    uniform = batch.uniform() if batched else None
+    if uniform is not None:
+        viewmats, Ks, images, masks, width, height = uniform
+        with phase("render"):
+            out = render_timesteps(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats, Ks, width, height, background,
+                                   backend=raster.backend, max_pairs=raster.max_pairs)
+        with phase("loss"):
+            return loss(out.color.flatten(0, 1), images, masks, height)
+    num_views = sum(len(vb.cameras) for step_batches in batch.views for vb in step_batches)
+    totals: dict[str, torch.Tensor] = {}
+    for k, step_batches in enumerate(batch.views):
+        for vb in step_batches:
+            with phase("render"):
+                out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
+                                       vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
+            with phase("loss"):
+                terms = loss(out.color, vb.images, vb.masks, vb.height)
+                for key, value in terms.items():
+                    totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
+    return totals
+
+
+def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", variant: str = "pig",
+        device: torch.device | str = "cpu", on_iteration: Callable[[int], None] | None = None,
+        phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False) -> Path:
+    """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
+
+    Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
+    or with `overwrite`.
+
+    `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
+    `phase(name)` wraps each part of an iteration ("sample": waiting for the iteration's views, "model",
+    "render", "loss", "backward", "step"; render and loss once per view batch): a hook for profilers
+    (benchmarks/fit_gpu.py). The wait for the views is also logged (train_log.csv's data_wait_ms) and its
+    mean printed at the end.
+    """
+    threads = torch.get_num_threads()
+    try:
+        return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, resolve_device(str(device), "--device"),
+                    on_iteration, phase or (lambda name: nullcontext()), overwrite)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, device: torch.device,
+         on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
+         overwrite: bool) -> Path:
+    profile = load_profile(profile_name)
+    overrides = variant_overrides(profile, variant)
+    unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
+    if unknown:
+        raise ConfigError(f"{profile['_path']}: variant {variant!r} overrides unknown section(s) {unknown}")
+    avatar_cfg = load_section(profile, "avatar", AvatarConfig, overrides.get("avatar"))
+    fit_cfg = load_section(profile, "fit", FitConfig, overrides.get("fit"))
+    field_cfg = load_section(profile, "field", FieldConfig, overrides.get("field"))
+    precond_cfg = load_section(profile, "precond", PrecondConfig, overrides.get("precond"))
+    raster = load_section(profile, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
+    if device.type == "cpu" and fit_cfg.cpu_threads > 0:
+        torch.set_num_threads(fit_cfg.cpu_threads)
+    claim_files(output_dir, OUTPUT_FILES, "fit", (capture_dir,), overwrite)
+    state_path = output_dir / "checkpoint.pt"
+    avatar_path = output_dir / "avatar.pt"
+    log_path = output_dir / "train_log.csv"
+
+    capture = Capture.load(capture_dir, cache_mb=0)  # the view source caches decoded views
+    train = capture.split["train"]
+    # Per timestep, the cameras with an image and mask of its frame (a missing raw frame has none).
+    seen_by = tuple(tuple(c for c in train["cameras"] if capture.has(c, f)) for f in train["frames"])
+    if not any(seen_by):
+        raise CaptureError(f"{capture_dir}: no image and mask of the train split (cameras {train['cameras']}) under "
+                           "images/ and masks/; rerun preprocess")
+    index = [capture.frames.index(f) for f in train["frames"]]
+    params = perturb_params(capture.params.select(index), fit_cfg.sigma_body, fit_cfg.seed)
+    spec = {
+        "avatar": asdict(avatar_cfg), "field": asdict(field_cfg), "precond": asdict(precond_cfg),
+        "body_model_npz": body_model_npz(Path(capture_dir) / "body_model.npz"),
+        "params": asdict(params), "frame_ids": [int(f) for f in train["frames"]], "variant": variant,
+        "capture": capture.fingerprint(),
+    }
+    settings = {"fit": asdict(fit_cfg), "rasterizer": asdict(raster)}  # the other sections a resume must match
+    torch.manual_seed(fit_cfg.seed)
+    model = build_avatar(spec).to(device)
+    model.decoder.set_precision(fit_cfg.precision, compiled=fit_cfg.compile)
+    optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg, fused=fit_cfg.fused_adam)
+    base_lrs = [[group["lr"] for group in opt.param_groups] for opt in optimizers]  # the schedule scales these
+    generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
+    start, wall_before, rows = 0, 0.0, []
+    if state_path.exists():
+        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings)
+        print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
+
+    background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
+    loss = LossTerms(fit_cfg, background, _load_lpips(fit_cfg, device), fit_cfg.compile)
+
+    def checkpoint(path: Path, iteration: int, wall: float) -> None:
+        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings)
+        _write_log(log_path, rows)
+
+    with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers) as source, \
+            _matmul_precision(fit_cfg.precision):
+        sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
+        batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
+        held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
+        started = time.perf_counter()
+        if start == 0:
+            rows = [{"iteration": 0, "wall_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
+                     "heldout_psnr": held_out.psnr(model, raster), "data_wait_ms": ""}]
+        evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
+        last_save = started
+        waits = []
+        window: dict[str, torch.Tensor] = {}  # loss terms summed on the device since the last logged row
+        window_waits: list[float] = []
+        iteration = start
+        progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
+        for i in progress:
+            trained = wall_before + time.perf_counter() - started - evaluating
+            done = i / fit_cfg.iterations
+            if fit_cfg.time_budget_s is not None:
+                if trained >= fit_cfg.time_budget_s:
+                    break
+                done = max(done, trained / fit_cfg.time_budget_s)
+            factor = lr_factor(done, i, fit_cfg.lr_warmup, fit_cfg.lr_final)
+            for opt, lrs in zip(optimizers, base_lrs):
+                for group, lr in zip(opt.param_groups, lrs):
+                    group["lr"] = lr * factor
+            with phase("sample"):
+                batch = batches.get(i)
+            waits.append(batch.wait_s)
+            window_waits.append(batch.wait_s)
+            terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
+            with phase("backward"):
+                for opt in optimizers:
+                    opt.zero_grad(set_to_none=True)
+                terms["total"].backward()
+            with phase("step"):
+                for opt in optimizers:
+                    opt.step()
+            for key, value in terms.items():
+                window[key] = window.get(key, 0) + value.detach()
+
+            iteration = i + 1
+            evaluate = iteration % fit_cfg.eval_every == 0 or iteration == fit_cfg.iterations
+            save = iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes
+            if evaluate or save or iteration % fit_cfg.log_every == 0:
+                # Reading the loss back waits for the device: once per logged row, a mean over the window.
+                count = len(window_waits)
+                row = {"iteration": iteration, "wall_s": round(wall_before + time.perf_counter() - started, 3), "lod": batch.lod,
+                       "heldout_psnr": "", "data_wait_ms": round(1000 * float(np.mean(window_waits)), 3),
+                       **{key: window[name].item() / count if name in window else "" for key, name in
+                          (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
+                window, window_waits = {}, []
+                if evaluate:
+                    t0 = time.perf_counter()
+                    row["heldout_psnr"] = held_out.psnr(model, raster)
+                    evaluating += time.perf_counter() - t0
+                    progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}")
+                rows.append(row)
+            if save:
+                checkpoint(state_path, iteration, wall_before + time.perf_counter() - started)
+                last_save = time.perf_counter()
+            if on_iteration is not None:
+                on_iteration(iteration)
+        else:
+            iteration = fit_cfg.iterations
+        if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
+            count = max(len(window_waits), 1)
+            rows.append({"iteration": iteration, "wall_s": round(wall_before + time.perf_counter() - started, 3), "lod": "",
+                         "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3), "heldout_psnr": "",
+                         **{key: window[name].item() / count if name in window else "" for key, name in
+                            (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}})
+        if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
+            rows[-1]["heldout_psnr"] = held_out.psnr(model, raster)
+    if waits:
+        per_iteration = (time.perf_counter() - started - evaluating) / len(waits)
+        print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "
+              f"of {1000 * per_iteration:.0f} ms) over {len(waits)} iterations; {source.decoded} views decoded, "
+              f"{source.hits} from the cache, at most {source.peak_held} decoded views held", file=sys.stderr)
+
+    checkpoint(avatar_path, iteration, wall_before + time.perf_counter() - started)
+    _plot_log(output_dir / "train_log.png", rows)
+    state_path.unlink(missing_ok=True)
+    return avatar_path
