@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
-from pig.avatar.checkpoint import CheckpointError, load_avatar, load_training_state, save_checkpoint
+from pig.avatar.checkpoint import CheckpointError, load_avatar, load_training_state, loss_terms, save_checkpoint
 from pig.avatar.config import AvatarConfig
 from pig.body.model import SMPLX_PARENTS, BodyModel
 from pig.body.params import SmplxParams
@@ -24,6 +24,7 @@ FINGERPRINT = {part: f"{i:064x}" for i, part in
                enumerate(("cameras", "smplx", "split", "background", "body_model", "images"))}
 SETTINGS = {"fit": {"iterations": 10, "eval_every": 5, "checkpoint_minutes": 5.0, "lr_decoders": 1e-3, "seed": 0},
             "rasterizer": {"backend": "cpu", "max_pairs": 1000}}
+TERMS = {"lpips": {"weight": 2.0, "net": "vgg", "state": "weights absent", "detail": "LPIPS vgg backbone: not found"}}
 
 
 def _tiny_body_model(rng) -> dict[str, np.ndarray]:
@@ -88,7 +89,7 @@ def saved(spec, tmp_path_factory):
     """A checkpoint after two optimiser steps, and the training state it was written from."""
     model, optimizers, generator = _trained(spec)
     path = tmp_path_factory.mktemp("saved") / "checkpoint.pt"
-    save_checkpoint(path, model, spec, optimizers, generator, 2, 1.5, ROWS, SETTINGS)
+    save_checkpoint(path, model, spec, optimizers, generator, 2, 1.5, ROWS, SETTINGS, TERMS)
     return path, model, optimizers, generator
 
 
@@ -96,7 +97,7 @@ def test_checkpoint_reads_with_weights_only_and_resumes_bit_exactly(spec, tmp_pa
     model, optimizers, generator = _trained(spec)
     path = tmp_path / "checkpoint.pt"
     torch_rng = torch.get_rng_state()
-    save_checkpoint(path, model, spec, optimizers, generator, 2, 1.5, ROWS, SETTINGS)
+    save_checkpoint(path, model, spec, optimizers, generator, 2, 1.5, ROWS, SETTINGS, TERMS)
     state = torch.load(path, weights_only=True)
     assert state["version"] == 2 and state["iteration"] == 2 and state["spec"]["capture"] == FINGERPRINT
     for key, value in spec["params"].items():  # stored as float64 tensors, not pickled numpy arrays
@@ -108,7 +109,7 @@ def test_checkpoint_reads_with_weights_only_and_resumes_bit_exactly(spec, tmp_pa
     restored, restored_optimizers, restored_generator = _training(spec)
     assert not torch.equal(restored_generator.get_state(), generator.get_state())
     torch.manual_seed(123)
-    iteration, wall, log = load_training_state(path, restored, restored_optimizers, restored_generator, spec, SETTINGS)
+    iteration, wall, log = load_training_state(path, restored, restored_optimizers, restored_generator, spec, SETTINGS, TERMS)
     assert (iteration, wall) == (2, 1.5) and log[0] == ROWS[0] and log[1]["lod"] == 1
     assert torch.equal(restored_generator.get_state(), generator.get_state())
     assert torch.equal(torch.get_rng_state(), torch_rng)
@@ -136,7 +137,7 @@ def test_save_refuses_what_a_safe_load_could_not_read(spec, saved, tmp_path):
     _, model, optimizers, generator = saved
     path = tmp_path / "checkpoint.pt"
     with pytest.raises(TypeError, match=r"state\['log'\]\[0\]\['note'\]: a PosixPath"):
-        save_checkpoint(path, model, spec, optimizers, generator, 3, 1.5, [{"note": Path("x")}], SETTINGS)
+        save_checkpoint(path, model, spec, optimizers, generator, 3, 1.5, [{"note": Path("x")}], SETTINGS, TERMS)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -160,7 +161,7 @@ def test_crafted_pickle_is_not_executed(spec, tmp_path, loader):
             load_avatar(path)
         else:
             model, optimizers, generator = _training(spec)
-            load_training_state(path, model, optimizers, generator, spec, SETTINGS)
+            load_training_state(path, model, optimizers, generator, spec, SETTINGS, TERMS)
     assert not marker.exists()
     message = str(err.value)
     assert message.startswith(f"{path}: ") and "\n" not in message
@@ -256,7 +257,7 @@ def test_spec_with_a_pickled_body_model_is_refused(spec, saved, tmp_path):
     np.savez(buffer, v_template=np.array([RunsCode(marker)], dtype=object))
     path = tmp_path / "avatar.pt"
     _, model, optimizers, generator = saved
-    save_checkpoint(path, model, {**spec, "body_model_npz": buffer.getvalue()}, optimizers, generator, 3, 1.0, [], SETTINGS)
+    save_checkpoint(path, model, {**spec, "body_model_npz": buffer.getvalue()}, optimizers, generator, 3, 1.0, [], SETTINGS, TERMS)
     with pytest.raises(CheckpointError, match=f"^{re.escape(str(path))}: avatar spec unusable .*allow_pickle=False"):
         load_avatar(path)
     assert not marker.exists()
@@ -285,9 +286,9 @@ def test_body_model_npz_keeps_the_model_and_drops_pickled_objects(tmp_path):
 # ---- resuming only the same fit ----
 
 
-def _resume(path, spec, settings=SETTINGS):
+def _resume(path, spec, settings=SETTINGS, terms=TERMS):
     model, optimizers, generator = _training(spec)
-    return load_training_state(path, model, optimizers, generator, spec, settings)
+    return load_training_state(path, model, optimizers, generator, spec, settings, terms)
 
 
 def _refusal(path, differs: str) -> str:
@@ -317,6 +318,42 @@ def test_resume_refuses_another_capture_profile_or_variant(spec, saved):
         _resume(path, {**spec, "variant": "no_offsets"}, gsplat)
     assert str(err.value) == _refusal(
         path, "profile section 'rasterizer' differs in backend; the variant differs ('pig', now 'no_offsets')")
+
+
+def test_resume_refuses_another_lpips_state(spec, saved):
+    """Same profile, but the LPIPS weights appeared (or went) since the checkpoint: the loss is another one."""
+    path = saved[0]
+    on = {"lpips": {**TERMS["lpips"], "state": "on", "detail": ""}}
+    with pytest.raises(CheckpointError) as err:
+        _resume(path, spec, terms=on)
+    assert str(err.value) == _refusal(path, "the LPIPS term differs ('weights absent', now 'on')")
+    # The detail (where the weights were sought) may differ between machines; the state decides.
+    assert _resume(path, spec, terms={"lpips": {**TERMS["lpips"], "detail": "elsewhere"}})[0] == 2
+
+
+def test_loss_terms_read_back_and_an_older_file_reads_as_unknown(spec, saved, tmp_path):
+    from pig.avatar.losses import fit_note
+
+    path, model = saved[:2]
+    assert loss_terms(path) == TERMS
+    state = torch.load(path, weights_only=True)
+    del state["loss_terms"]
+    older = tmp_path / "avatar.pt"
+    torch.save(state, older)
+    terms = loss_terms(older)
+    assert terms == {"lpips": {"weight": None, "net": None, "state": "unknown", "detail": ""}}
+    assert fit_note(terms["lpips"]) == "fit's LPIPS term unknown (avatar.pt written before fits recorded it, re-run the fit)"
+    loaded = load_avatar(older).state_dict()
+    assert all(torch.equal(loaded[key], value) for key, value in model.state_dict().items())
+    with pytest.raises(CheckpointError) as err:
+        _resume(older, spec)
+    assert str(err.value) == _refusal(older, "the LPIPS term differs ('unknown', now 'weights absent')")
+
+    torch.save({**state, "loss_terms": {"lpips": {"state": "sometimes"}}}, older)
+    with pytest.raises(CheckpointError, match=rf"^{re.escape(str(older))}: loss-term record unreadable \(expected 'lpips' "
+                                              r"with a state among \('on', .*found \{'lpips': \{'state': 'sometimes'\}\}\); "
+                                              r"re-run the fit stage"):
+        loss_terms(older)
 
 
 def test_resume_accepts_a_longer_run_and_other_cadence(spec, saved):

@@ -1,9 +1,9 @@
 """Avatar checkpoints: the model spec + weights, and for resuming the optimiser, RNG and log state.
 
 Only tensors and plain Python values are stored, so `torch.load(weights_only=True)` reads them and loading
-never runs code. A resume is refused unless the capture, the profile sections the fit uses and the variant
-match. Written atomically (temporary name, then rename); `load_avatar` is the render stage's entry. No paper
-equation.
+never runs code. A resume is refused unless the capture, the profile sections the fit uses, the variant and
+the LPIPS term's state match. Written atomically (temporary name, then rename); `load_avatar` is the render stage's entry, and
+`loss_terms` reads the record of which loss terms of Eq. 15 the fit had (pig.avatar.losses.lpips_term).
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import torch
 from pig.stages._io import atomic_path
 
 from .build import build_avatar
+from .losses import LPIPS_STATES
 
 FORMAT_VERSION = 2  # 1 held numpy arrays, which only an unrestricted (code-running) unpickler reads
 AVATAR_KEYS = ("version", "spec", "model")
@@ -33,14 +34,15 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(path: Path, model, spec: dict, optimizers: list, generator: torch.Generator, iteration: int,
-                    wall_s: float, log_rows: list[dict], settings: dict[str, dict]) -> None:
+                    wall_s: float, log_rows: list[dict], settings: dict[str, dict], loss_terms: dict[str, dict]) -> None:
     """Write everything a resume needs; `spec` (see `build_avatar`) holds the capture's fingerprint under
-    "capture", and `settings` the other profile sections the fit uses ({"fit": {...}, "rasterizer": {...}})."""
+    "capture", `settings` the other profile sections the fit uses ({"fit": {...}, "rasterizer": {...}}), and
+    `loss_terms` the records of the fit's loss terms ({"lpips": a record of `lpips_term`})."""
     state = _plain({
         "version": FORMAT_VERSION, "spec": _stored_spec(spec), "model": _weights(model),
         "optimizers": [opt.state_dict() for opt in optimizers], "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(), "iteration": iteration, "wall_s": wall_s, "log": log_rows,
-        "settings": settings,
+        "settings": settings, "loss_terms": loss_terms,
     }, "state")
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
@@ -145,9 +147,29 @@ def load_avatar(path: str | Path, device: str | torch.device = "cpu"):
     return model.to(device).eval()
 
 
-def _mismatch(state: dict, spec: dict, settings: dict[str, dict]) -> list[str]:
-    """What differs between the fit a checkpoint's state belongs to and the fit of `spec` and `settings`:
-    the capture's parts, profile sections (with their keys) and the variant; empty when it may resume."""
+def loss_terms(path: str | Path) -> dict[str, dict]:
+    """The records of the loss terms a checkpoint's fit had ({"lpips": {"weight", "net", "state", "detail"}}),
+    read without building the model; state "unknown" for a file written before they were recorded."""
+    path = Path(path)
+    return _loss_terms(_read(path, AVATAR_KEYS), path)
+
+
+def _loss_terms(state: dict, path: Path) -> dict[str, dict]:
+    if "loss_terms" not in state:  # written before the loss terms were recorded
+        return {"lpips": {"weight": None, "net": None, "state": "unknown", "detail": ""}}
+    terms = state["loss_terms"]
+    lpips = terms.get("lpips") if isinstance(terms, dict) else None
+    if not isinstance(lpips, dict) or lpips.get("state") not in LPIPS_STATES:
+        raise CheckpointError(f"{path}: loss-term record unreadable (expected 'lpips' with a state among {LPIPS_STATES}, "
+                              f"found {terms!r}); re-run the fit stage (python -m pig.stages.fit)")
+    return terms
+
+
+def _mismatch(state: dict, spec: dict, settings: dict[str, dict], terms: dict[str, dict],
+              old_terms: dict[str, dict]) -> list[str]:
+    """What differs between the fit a checkpoint's state belongs to and the fit of `spec`, `settings` and loss
+    `terms`: the capture's parts, profile sections (with their keys), the variant and the LPIPS term's state
+    (its weight files may have appeared or gone since); empty when it may resume."""
     differs = []
     old_capture, new_capture = state["spec"].get("capture", {}), spec["capture"]
     parts = sorted(key for key in old_capture.keys() | new_capture.keys() if old_capture.get(key) != new_capture.get(key))
@@ -162,15 +184,17 @@ def _mismatch(state: dict, spec: dict, settings: dict[str, dict]) -> list[str]:
             differs.append(f"profile section '{name}' differs in {', '.join(keys)}")
     if state["spec"].get("variant") != spec["variant"]:
         differs.append(f"the variant differs ({state['spec'].get('variant')!r}, now {spec['variant']!r})")
+    if old_terms["lpips"]["state"] != terms["lpips"]["state"]:
+        differs.append(f"the LPIPS term differs ({old_terms['lpips']['state']!r}, now {terms['lpips']['state']!r})")
     return differs
 
 
 def load_training_state(path: Path, model, optimizers: list, generator: torch.Generator, spec: dict,
-                        settings: dict[str, dict]) -> tuple[int, float, list[dict]]:
+                        settings: dict[str, dict], loss_terms: dict[str, dict]) -> tuple[int, float, list[dict]]:
     """Restore weights, optimisers and RNG from a checkpoint of the same fit (capture, profile sections,
-    variant: see `_mismatch`); returns (iteration, wall seconds so far, log rows)."""
+    variant, LPIPS term: see `_mismatch`); returns (iteration, wall seconds so far, log rows)."""
     state = _read(path, TRAINING_KEYS)
-    differs = _mismatch(state, spec, settings)
+    differs = _mismatch(state, spec, settings, loss_terms, _loss_terms(state, path))
     if differs:
         raise CheckpointError(f"{path}: checkpoint of another fit, not resumed: {'; '.join(differs)}; "
                               "delete it to start the fit over, or point --output elsewhere")

@@ -1,14 +1,65 @@
 """Training objective: silhouette-aware masked 8 L1 + 2 (1 - SSIM) + 2 LPIPS.
 
 Implements Eq. 15; the boundary band (dilate minus erode of the mask) is set to the background in
-both render and ground truth, as MMLPHuman-style silhouette-aware masking does.
+both render and ground truth, as MMLPHuman-style silhouette-aware masking does. The LPIPS term needs
+pretrained weights that may be absent: `lpips_term` says in a plain record whether a fit had it, and
+`fit_note` turns that record into the note the result tables carry.
 """
 from __future__ import annotations
+
+import sys
 
 import torch
 import torch.nn.functional as F
 
+from pig.metrics.lpips import LPIPS, WeightsMissing
 from pig.metrics.ssim import ssim
+
+# The LPIPS term's state in a fit: "on", or why it is not the paper's term; "unknown" for checkpoints written
+# before the state was recorded.
+LPIPS_STATES = ("on", "weights absent", "weight 0", "random weights", "unknown")
+NET_NAMES = {"alex": "AlexNet", "vgg": "VGG"}
+
+
+def lpips_term(cfg, device: str | torch.device = "cpu") -> tuple[torch.nn.Module | None, dict]:
+    """The LPIPS module of Eq. 15 (frozen, on `device`) or None, and the record of its state:
+    {"weight", "net", "state" (one of LPIPS_STATES), "detail" (why the weights are absent, else "")}.
+
+    `cfg` is the profile's fit section (pig.stages.fit.FitConfig): weight_lpips, lpips_net, lpips_weights
+    ("pretrained" or "random"), lpips_backbone_weights, lpips_linear_weights, seed. Absent pretrained
+    weights leave the term out with a one-line notice on stderr; "random" looks up no file.
+    """
+    record = {"weight": float(cfg.weight_lpips), "net": cfg.lpips_net, "state": "on", "detail": ""}
+    if cfg.weight_lpips <= 0:
+        return None, {**record, "state": "weight 0"}
+    if cfg.lpips_weights == "random":
+        print(f"fit: LPIPS term with randomly initialised {cfg.lpips_net} weights (seed {cfg.seed}; for timing only)",
+              file=sys.stderr)
+        net = LPIPS(cfg.lpips_net, weights="random", seed=cfg.seed)
+        return net.to(device), {**record, "state": "random weights"}
+    try:
+        net = LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights)
+    except WeightsMissing as err:
+        print(f"fit: LPIPS term left out of the loss ({err})", file=sys.stderr)
+        return None, {**record, "state": "weights absent", "detail": str(err)}
+    return net.to(device), record
+
+
+def fit_note(record: dict) -> str:
+    """The tables' note on a fit's LPIPS term (a record of `lpips_term`); empty when the term was on. No "; " in
+    a note: the tables join a row's notes with it."""
+    state = record["state"]
+    if state == "on":
+        return ""
+    if state == "weights absent":
+        return f"fit without the LPIPS term of Eq. 15 ({NET_NAMES.get(record['net'], record['net'])} weights absent)"
+    if state == "weight 0":
+        return "fit without the LPIPS term (weight 0)"
+    if state == "random weights":
+        return "fit with a randomly initialised LPIPS (timing only)"
+    if state == "unknown":
+        return "fit's LPIPS term unknown (avatar.pt written before fits recorded it, re-run the fit)"
+    raise ValueError(f"LPIPS term state {state!r}: expected one of {LPIPS_STATES}")
 
 
 def band_radius(height: int, radius_px: float, reference_height: int) -> int:

@@ -31,7 +31,7 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
-from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss
+from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.config import ConfigError, load_profile, load_section, resolve_device
@@ -44,7 +44,8 @@ from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
 from pig.stages._io import write_figure, write_text
 from pig.stages._outputs import claim_files
 
-LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "heldout_psnr", "data_wait_ms"]
+# lpips_term: the LPIPS term's state on every row (pig.avatar.losses.LPIPS_STATES; "on" is the paper's loss).
+LOG_COLUMNS = ["iteration", "wall_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr", "data_wait_ms"]
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
 PRECISIONS = ("float32", "tf32", "bf16")
 
@@ -69,6 +70,9 @@ class FitConfig:
     lpips_net: str = "vgg"
     lpips_backbone_weights: str | None = None  # None: the torch hub cache
     lpips_linear_weights: str | None = None
+    # "random": a seeded, randomly initialised LPIPS network, no file read; to time the term where the
+    # weights are absent (benchmarks only: the loss is not the paper's, and the tables say so).
+    lpips_weights: Literal["pretrained", "random"] = "pretrained"
     band_radius_px: float = 3.0  # silhouette band radius at `band_reference_height` rows (THuman4)
     band_reference_height: int = 1150
     sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
@@ -107,6 +111,11 @@ class FitConfig:
             raise ConfigError(f"fit.precision must be one of {PRECISIONS}, found {self.precision!r}")
         if not 0 < self.lr_final <= 1:
             raise ConfigError(f"fit.lr_final must lie in (0, 1], found {self.lr_final}")
+        if self.lpips_weights not in ("pretrained", "random"):
+            raise ConfigError(f"fit.lpips_weights must be 'pretrained' or 'random', found {self.lpips_weights!r}")
+        if self.lpips_weights == "random" and (self.lpips_backbone_weights or self.lpips_linear_weights):
+            raise ConfigError("fit.lpips_weights is 'random', which reads no weights file, but fit.lpips_backbone_weights "
+                              "or fit.lpips_linear_weights is set; unset them or use 'pretrained'")
         if self.time_budget_s is not None and not self.time_budget_s > 0:
             raise ConfigError(f"fit.time_budget_s must be positive or null, found {self.time_budget_s}")
 
@@ -127,20 +136,6 @@ def perturb_params(params: SmplxParams, sigma: float, seed: int) -> SmplxParams:
     pose[:, :22] += rng.normal(scale=sigma, size=pose[:, :22].shape)
     betas = params.betas + rng.normal(scale=sigma, size=params.betas.shape)
     return SmplxParams(pose, betas, params.expression.copy(), params.transl.copy())
-
-
-def _load_lpips(cfg: FitConfig, device):
-    """The LPIPS module, or None with a one-line notice when its weights are absent."""
-    if cfg.weight_lpips <= 0:
-        return None
-    from pig.metrics.lpips import LPIPS, WeightsMissing
-
-    try:
-        net = LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights)
-    except WeightsMissing as err:
-        print(f"fit: LPIPS term left out of the loss ({err})", file=sys.stderr)
-        return None
-    return net.to(device).eval().requires_grad_(False)
 
 
 def _write_log(path: Path, rows: list[dict]) -> None:
@@ -326,16 +321,18 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg, fused=fit_cfg.fused_adam)
     base_lrs = [[group["lr"] for group in opt.param_groups] for opt in optimizers]  # the schedule scales these
     generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
+    lpips, lpips_record = lpips_term(fit_cfg, device)
+    loss_terms = {"lpips": lpips_record}
     start, wall_before, rows = 0, 0.0, []
     if state_path.exists():
-        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings)
+        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings, loss_terms)
         print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
 
     background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
-    loss = LossTerms(fit_cfg, background, _load_lpips(fit_cfg, device), fit_cfg.compile)
+    loss = LossTerms(fit_cfg, background, lpips, fit_cfg.compile)
 
     def checkpoint(path: Path, iteration: int, wall: float) -> None:
-        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings)
+        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings, loss_terms)
         _write_log(log_path, rows)
 
     with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers) as source, \
@@ -346,7 +343,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
         started = time.perf_counter()
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
-                     "heldout_psnr": held_out.psnr(model, raster), "data_wait_ms": ""}]
+                     "lpips_term": lpips_record["state"], "heldout_psnr": held_out.psnr(model, raster), "data_wait_ms": ""}]
         evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
         last_save = started
         waits = []
@@ -387,7 +384,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
                 # Reading the loss back waits for the device: once per logged row, a mean over the window.
                 count = len(window_waits)
                 row = {"iteration": iteration, "wall_s": round(wall_before + time.perf_counter() - started, 3), "lod": batch.lod,
-                       "heldout_psnr": "", "data_wait_ms": round(1000 * float(np.mean(window_waits)), 3),
+                       "lpips_term": lpips_record["state"], "heldout_psnr": "", "data_wait_ms": round(1000 * float(np.mean(window_waits)), 3),
                        **{key: window[name].item() / count if name in window else "" for key, name in
                           (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
                 window, window_waits = {}, []
@@ -407,7 +404,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
         if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
             count = max(len(window_waits), 1)
             rows.append({"iteration": iteration, "wall_s": round(wall_before + time.perf_counter() - started, 3), "lod": "",
-                         "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3), "heldout_psnr": "",
+                         "lpips_term": lpips_record["state"], "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3), "heldout_psnr": "",
                          **{key: window[name].item() / count if name in window else "" for key, name in
                             (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}})
         if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it

@@ -3,11 +3,14 @@
 The evaluation's LPIPS column (Section 4.2) and the LPIPS term of the loss (Eq. 15). The backbone
 is rebuilt in plain torch with torchvision's layer layout, so torchvision's checkpoint
 (`alexnet-owt-7be5be79.pth` / `vgg16-397923af.pth`) and the lpips package's linear layers
-(`alex.pth` / `vgg.pth`) load by their original keys.
+(`alex.pth` / `vgg.pth`) load by their original keys. `weights="random"` builds the same network from a seed
+instead (no file read): its distances mean nothing, but it costs what the pretrained one costs, for timing
+the loss term where the weights are absent.
 """
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import torch
 import torch.nn as nn
@@ -64,11 +67,15 @@ class LPIPS(nn.Module):
 
     Differentiable w.r.t. the images. Raises `WeightsMissing` when either weight file is absent;
     `backbone_weights` / `linear_weights` name the files directly, otherwise they are looked up
-    in the torch hub cache (and the lpips package folder for the linear layers).
+    in the torch hub cache (and the lpips package folder for the linear layers). `weights="random"` looks up
+    nothing and initialises both from `seed` (see `_initialise`).
     """
 
-    def __init__(self, net: str = "alex", backbone_weights: str | Path | None = None, linear_weights: str | Path | None = None):
+    def __init__(self, net: str = "alex", backbone_weights: str | Path | None = None, linear_weights: str | Path | None = None,
+                 weights: Literal["pretrained", "random"] = "pretrained", seed: int = 0):
         super().__init__()
+        if weights not in ("pretrained", "random"):
+            raise ValueError(f"LPIPS weights must be 'pretrained' or 'random', found {weights!r}")
         self.net = net
         self.features = backbone_features(net)
         self.taps = TAPS[net]
@@ -76,12 +83,27 @@ class LPIPS(nn.Module):
         self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
 
-        backbone_path = locate(TORCHVISION_FILES[net], backbone_weights, [], f"LPIPS {net} backbone")
-        linear_path = locate(LPIPS_LINEAR_FILES[net], linear_weights, [lpips_package_weights()], f"LPIPS {net} linear layers")
-        self._load_backbone(backbone_path)
-        self._load_linear(linear_path)
+        if weights == "random":
+            self._initialise(torch.Generator().manual_seed(seed))
+        else:
+            backbone_path = locate(TORCHVISION_FILES[net], backbone_weights, [], f"LPIPS {net} backbone")
+            linear_path = locate(LPIPS_LINEAR_FILES[net], linear_weights, [lpips_package_weights()], f"LPIPS {net} linear layers")
+            self._load_backbone(backbone_path)
+            self._load_linear(linear_path)
         self.requires_grad_(False)
         self.eval()
+
+    @torch.no_grad()
+    def _initialise(self, generator: torch.Generator) -> None:
+        """He-normal convolutions with zero biases (activations keep their scale through the ReLUs) and
+        linear weights uniform in [0, 2/C) (non-negative, as LPIPS clamps its learnt ones; mean 1/C per
+        channel), all drawn from `generator` alone: the seed fixes them, whatever the global RNG's state."""
+        for layer in self.features:
+            if isinstance(layer, nn.Conv2d):
+                nn.init.kaiming_normal_(layer.weight, nonlinearity="relu", generator=generator)
+                layer.bias.zero_()
+        for lin in self.lins:
+            lin.weight.copy_(torch.rand(lin.weight.shape, generator=generator) * (2 / lin.in_channels))
 
     def _load_backbone(self, path: Path) -> None:
         state = load_state_dict(path)

@@ -1,8 +1,9 @@
 """Evaluate stage: per-image PSNR, SSIM, LPIPS and per-set FID of one split's renders at every LOD.
 
 Follows the paper's protocol (Section 4.2): full frame, black background, ground truth masked to
-black. Writes metrics/{split}_lod{l}.csv (per image) and metrics/{split}_lod{l}.json (summary). Views are
-read one batch at a time and FID keeps running feature statistics, so memory does not grow with the split.
+black. Writes metrics/{split}_lod{l}.csv (per image) and metrics/{split}_lod{l}.json (summary, with the render
+stage's timing and its note on the avatar's fit, `fit_note`). Views are read one batch at a time and FID keeps
+running feature statistics, so memory does not grow with the split.
 """
 from __future__ import annotations
 
@@ -41,6 +42,11 @@ class EvaluateConfig:
     batch_size: int = 8
     device: str = "auto"  # "auto": CUDA when available
     timing_frames: int = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
+
+
+# The render stage passes on the note of the avatar's fit (pig.avatar.losses.fit_note: the LPIPS term of Eq. 15
+# left out or not the paper's) in timing.json; renders of an older render stage lack it.
+UNRECORDED_FIT_NOTE = "fit's LPIPS term unknown (renders written before the render stage recorded it, re-run render)"
 
 
 def render_levels(split_dir: Path) -> list[int]:
@@ -137,6 +143,7 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         level_dir = split_dir / f"lod{level}"
         table, summary = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device, fid_note)
         timing = read_record(level_dir / "timing.json", "the render stage's timing record (splats, model_mb, fps, device)")
+        timing.setdefault("fit_note", UNRECORDED_FIT_NOTE)
         summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
@@ -145,8 +152,9 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         print(f"[evaluate] {split} lod{level}: PSNR {summary['psnr']:.2f} SSIM {summary['ssim']:.4f} "
               f"(blank {summary['psnr_blank']:.2f} / {summary['ssim_blank']:.4f}) FID {summary['fid']:.2f} "
               f"over {summary['images']} images")
-        if summary["fid_note"]:
-            print(f"[evaluate] {split} lod{level}: {summary['fid_note']}")
+        for note in (summary["fid_note"], summary["fit_note"]):
+            if note:
+                print(f"[evaluate] {split} lod{level}: {note}")
     return written
 
 

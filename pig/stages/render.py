@@ -127,7 +127,8 @@ class SplitRenderer:
 def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, cfg: EvaluateConfig,
                  rasterizer: RasterizerConfig, overwrite: bool = False) -> None:
     """Write `output`/lod{l}/... atomically; `output` may replace only an earlier render unless `overwrite`."""
-    from pig.avatar.checkpoint import load_avatar
+    from pig.avatar.checkpoint import load_avatar, loss_terms
+    from pig.avatar.losses import fit_note
     from pig.data.capture import Capture
 
     output = claim_dir(output, "render", (checkpoint, capture_dir), overwrite)
@@ -137,6 +138,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     cameras, frames = capture.split[split]["cameras"], [int(f) for f in capture.split[split]["frames"]]
     device = resolve_device(cfg.device)
     model = load_avatar(checkpoint, device).eval()
+    note = fit_note(loss_terms(checkpoint)["lpips"])  # passed on to the evaluate stage's summaries and the tables
     bake_preconditioning(model)
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
     levels = range(model.num_levels)
@@ -159,6 +161,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
                 "device": device_name(device),
                 "width": renderer.groups[0].width,
                 "height": renderer.groups[0].height,
+                "fit_note": note,
             })
 
 

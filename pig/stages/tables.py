@@ -50,7 +50,7 @@ def read_summaries(paths: list[Path]) -> pd.DataFrame:
 
 
 def _notes(frame: pd.DataFrame) -> str:
-    notes = sorted({n for col in ("lpips_note", "fid_note") if col in frame for n in frame[col].dropna() if n})
+    notes = sorted({n for col in ("lpips_note", "fid_note", "fit_note") if col in frame for n in frame[col].dropna() if n})
     return "; ".join(notes)
 
 
