@@ -267,7 +267,12 @@ def main(argv=None) -> int:
         stamps["preprocess_s"] = time.perf_counter() - t0
 
     variants = [parse_variant(v) for v in args.variant] or [("profile", {})]
-    results = [run_variant(args, *v, profile, capture) for v in variants]
+    results = []
+    for variant in variants:  # a line per variant as it ends, in case the run is cut short
+        results.append(run_variant(args, *variant, profile, capture))
+        r = results[-1]
+        print(f"variant {r['name']}: {r['ms_per_iteration']:.1f} ms/it, peak {r['peak_gib']:.2f} GiB, fit {r['fit_total_s']:.0f} s"
+              + (f", budget {r['budget']}" if "budget" in r else ""), flush=True)
 
     header = [
         ("device", torch.cuda.get_device_name()),

@@ -13,7 +13,7 @@ from pig.avatar.checkpoint import CheckpointError, loss_terms
 from pig.avatar.losses import fit_note, lpips_term
 from pig.config import ConfigError, load_profile, load_section
 from pig.metrics.lpips import LPIPS
-from pig.stages.fit import FitConfig
+from pig.avatar.training import FitConfig
 
 ABSENT_VGG = "fit without the LPIPS term of Eq. 15 (VGG weights absent)"
 ABSENT_ALEX = "fit without the LPIPS term of Eq. 15 (AlexNet weights absent)"
@@ -162,7 +162,7 @@ def test_fit_without_the_weights_records_it_and_every_table_row_says_so(small_ca
     resume after the weights appeared is refused; the note reaches the summaries and each table row."""
     from pig.render.api import RasterizerConfig
     from pig.stages.evaluate import EvaluateConfig, evaluate_split
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
     from pig.stages.render import render_split
     from pig.stages.tables import make_tables
 
@@ -218,7 +218,7 @@ def test_fit_without_the_weights_records_it_and_every_table_row_says_so(small_ca
 
 
 def test_fit_with_random_lpips_trains_with_the_term(small_capture, tmp_path, empty_hub):
-    from pig.stages.fit import fit
+    from pig.avatar.training import fit
 
     profile = _profile(tmp_path, iterations=2, eval_every=2, weight_lpips=2.0, lpips_net="alex", lpips_weights="random")
     avatar = fit(small_capture, tmp_path / "pig", profile)

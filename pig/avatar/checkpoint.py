@@ -24,7 +24,7 @@ AVATAR_KEYS = ("version", "spec", "model")
 TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteration", "wall_s", "log", "settings")
 # Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading,
 # memory bands.
-FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers"},
+FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers", "log_every"},
                  "rasterizer": {"max_pairs"}}
 SPEC_SECTIONS = ("avatar", "field", "precond")  # profile sections recorded in the spec
 
