@@ -65,6 +65,7 @@ class PrecondConfig:
     cg_tol: float = 1e-5
     cg_max_iter: int = 200
     cg_check_every: int = 1  # CG tests its residual (a host synchronisation) every this many iterations
+    cg_compile: bool = False  # CG iterations compiled with torch.compile (speed lever, pig/field/knn_solve.py)
 
     def grid_lrs(self, levels: int) -> list[float]:
         return [self.grid_lr * self.grid_lr_growth**g for g in range(levels)]
@@ -164,7 +165,8 @@ def knn_system(points: torch.Tensor, cfg: PrecondConfig) -> FactorizedSystem | C
     laplacian = knn_laplacian(points.detach().to("cpu", torch.float64).numpy(), cfg.knn_k)
     if cfg.knn_solver == "factorized":
         return FactorizedSystem(laplacian, cfg.anchor_lambda)
-    return CGSystem(laplacian, cfg.anchor_lambda, tol=cfg.cg_tol, max_iter=cfg.cg_max_iter, check_every=cfg.cg_check_every)
+    return CGSystem(laplacian, cfg.anchor_lambda, tol=cfg.cg_tol, max_iter=cfg.cg_max_iter, check_every=cfg.cg_check_every,
+                    compiled=cfg.cg_compile)
 
 
 def precondition_anchors(points: torch.Tensor, cfg: PrecondConfig) -> PreconditionedTensor:

@@ -1,0 +1,47 @@
+"""Held-out PSNR curves of fit runs made by `benchmarks/fit_gpu.py --eval-every N --json F` (one or more files):
+a table of every variant's PSNR per evaluation with its difference to the first variant's, and a plot.
+
+    python benchmarks/parity.py benchmarks/gpu_runs/run9/parity_fast.json benchmarks/gpu_runs/run9/parity_baseline.json \
+        --reference baseline --plot benchmarks/gpu_runs/run9/parity.png
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fit_gpu import plot_heldout  # noqa: E402
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("results", type=Path, nargs="+", help="fit_gpu.py --json files")
+    parser.add_argument("--reference", default=None, help="variant the others are compared with (default: the first)")
+    parser.add_argument("--plot", type=Path, default=None)
+    args = parser.parse_args(argv)
+    runs = [r for path in args.results for r in json.loads(path.read_text())["results"]]
+    for r in runs:
+        r["heldout"] = {int(k): v for k, v in r["heldout"].items()}
+    runs.sort(key=lambda r: r["name"] != (args.reference or runs[0]["name"]))
+    first = runs[0]
+    print(f"| iteration | " + " | ".join(r["name"] for r in runs) + " | " +
+          " | ".join(f"{r['name']} - {first['name']}" for r in runs[1:]) + " |")
+    print("|---|" + "---|" * (2 * len(runs) - 1))
+    worst = {r["name"]: 0.0 for r in runs[1:]}
+    for step in sorted(first["heldout"]):
+        values = [r["heldout"].get(step, float("nan")) for r in runs]
+        for r, v in zip(runs[1:], values[1:]):
+            worst[r["name"]] = max(worst[r["name"]], abs(v - values[0]))
+        print(f"| {step} | " + " | ".join(f"{v:.3f}" for v in values) + " | " +
+              " | ".join(f"{v - values[0]:+.3f}" for v in values[1:]) + " |")
+    for name, value in worst.items():
+        print(f"largest |{name} - {first['name']}|: {value:.3f} dB")
+    if args.plot is not None:
+        plot_heldout(runs, args.plot)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
