@@ -60,24 +60,28 @@ class AnchorDecoder(nn.Module):
             self.shape = mlp(inputs, width, layers, SHAPE_OUTPUTS, output_gain)
             self.colour = mlp(inputs, width, layers, colour_outputs, output_gain)
         self.autocast = False
+        self._compiled_mlps = None  # `_run_mlps` compiled by set_precision
 
     def set_precision(self, precision: str, compiled: bool = False) -> None:
         """MLPs in "float32", "tf32" (set by the caller through torch.backends) or "bf16" autocast with float32
         weights and outputs; `compiled` compiles them with torch.compile (same parameters and state dict)."""
         self.autocast = precision == "bf16"
-        if compiled:
-            for net in (self.shared, self.shape, self.colour):
-                if net is not None:
-                    net.compile()
+        if compiled and self._compiled_mlps is None:
+            # A method of this file, not nn.Module.compile(): Dynamo skips the frames of torch.nn's own modules
+            # (nn.Sequential) that Module.compile() hands it, and they ran eagerly without a word (torch 2.13).
+            self._compiled_mlps = torch.compile(self._run_mlps)
 
-    def forward(self, y: torch.Tensor, log_scale_prior: float | torch.Tensor = 0.0) -> DecodedAnchors:
-        """y (..., inputs) -> decoded attributes; scale = exp(output + log_scale_prior)."""
+    def _run_mlps(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(shape, colour) raw MLP outputs, in bf16 autocast when `autocast` is set."""
         with torch.autocast(y.device.type, torch.bfloat16, enabled=self.autocast):
             if self.shared is not None:
                 out = self.shared(y)
-                shape, colour = out[..., :SHAPE_OUTPUTS], out[..., SHAPE_OUTPUTS:]
-            else:
-                shape, colour = self.shape(y), self.colour(y)
+                return out[..., :SHAPE_OUTPUTS], out[..., SHAPE_OUTPUTS:]
+            return self.shape(y), self.colour(y)
+
+    def forward(self, y: torch.Tensor, log_scale_prior: float | torch.Tensor = 0.0) -> DecodedAnchors:
+        """y (..., inputs) -> decoded attributes; scale = exp(output + log_scale_prior)."""
+        shape, colour = (self._compiled_mlps or self._run_mlps)(y)
         shape, colour = shape.to(y.dtype), colour.to(y.dtype)  # the parameterisations below in the input's precision
         offset = shape[..., 0:3] * self.offset_scale
         if not self.offsets:

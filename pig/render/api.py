@@ -98,6 +98,12 @@ def render_timesteps(
     if means.ndim != 3 or viewmats.ndim != 4 or viewmats.shape[0] != means.shape[0] or Ks.shape[:2] != viewmats.shape[:2]:
         raise RenderError(f"render_timesteps: expected means (K, N, 3), viewmats (K, C, 4, 4) and Ks (K, C, 3, 3), got "
                           f"{tuple(means.shape)}, {tuple(viewmats.shape)} and {tuple(Ks.shape)}")
+    if means.shape[0] == 0:
+        raise RenderError("render_timesteps: expected at least one set of Gaussians, got K = 0")
+    # Indexing set k below would drop extra sets silently, or fail without naming the tensor.
+    for name, tensor in {"quats": quats, "scales": scales, "opacities": opacities, "sh": sh}.items():
+        if tensor.ndim == 0 or tensor.shape[0] != means.shape[0]:
+            raise RenderError(f"{name}: expected {means.shape[0]} sets (K, N, ...) like means, got {tuple(tensor.shape)}")
     for k in range(means.shape[0]):  # the checks of one set are those of every set
         _check_gaussians(means[k], quats[k], scales[k], opacities[k], sh[k])
         _check_cameras(viewmats[k], Ks[k], width, height, means)
