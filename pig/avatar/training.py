@@ -340,10 +340,10 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
-        started = time.perf_counter()
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
                      "lpips_term": lpips_record["state"], "heldout_psnr": held_out.psnr(model, raster), "data_wait_ms": ""}]
+        started = time.perf_counter()
         evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
         last_save = started
         waits = []

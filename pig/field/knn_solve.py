@@ -108,23 +108,21 @@ class FactorizedSystem(_KnnSystem):
         return torch.from_numpy(np.asarray(x).reshape(rhs.shape)).to(device=b.device, dtype=b.dtype).reshape(b.shape)
 
 
-def _cg_block(x, r, p, rz, columns, values, inv_diag, lam: float, steps: int):
-    """`steps` Jacobi-preconditioned CG iterations on (x, residual r, direction p, r.z) for A = I + lam L, L given by
-    its padded rows; float64 columns solved at once. Out of place, so that torch.compile fuses each iteration's
-    gather, products and reductions into a few kernels (the eager loop launches a dozen per iteration)."""
-    for _ in range(steps):
-        ap = p + lam * (values[..., None] * p[columns]).sum(dim=1)
-        pap = (p * ap).sum(dim=0)
-        # Columns that already converged exactly have p = 0; keep them fixed instead of dividing 0 by 0.
-        alpha = torch.where(pap > 0, rz / torch.where(pap > 0, pap, torch.ones_like(pap)), torch.zeros_like(pap))
-        x = x + alpha * p
-        r = r - alpha * ap
-        z = inv_diag * r
-        rz_new = (r * z).sum(dim=0)
-        beta = torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, torch.ones_like(rz)), torch.zeros_like(rz))
-        p = z + beta * p
-        rz = rz_new
-    return x, r, p, rz
+def _cg_iteration(x, r, p, rz, columns, values, inv_diag, lam: float):
+    """One Jacobi-preconditioned CG iteration on (x, residual r, direction p, r.z) for A = I + lam L, L given by its
+    padded rows; float64 columns solved at once. Out of place, so that torch.compile fuses the gather, products and
+    reductions into a few kernels (the eager iteration launches a dozen); one iteration, not an unrolled block,
+    keeps the compilation short."""
+    ap = p + lam * (values[..., None] * p[columns]).sum(dim=1)
+    pap = (p * ap).sum(dim=0)
+    # Columns that already converged exactly have p = 0; keep them fixed instead of dividing 0 by 0.
+    alpha = torch.where(pap > 0, rz / torch.where(pap > 0, pap, torch.ones_like(pap)), torch.zeros_like(pap))
+    x = x + alpha * p
+    r = r - alpha * ap
+    z = inv_diag * r
+    rz_new = (r * z).sum(dim=0)
+    beta = torch.where(rz > 0, rz_new / torch.where(rz > 0, rz, torch.ones_like(rz)), torch.zeros_like(rz))
+    return x, r, z + beta * p, rz_new
 
 
 class CGSystem(_KnnSystem):
@@ -145,7 +143,7 @@ class CGSystem(_KnnSystem):
         self._inverse_diagonal_on: dict[torch.device, torch.Tensor] = {}
         self._warm: dict[str | None, torch.Tensor] = {}
         self._rows: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
-        self._block = torch.compile(_cg_block, dynamic=False) if compiled else _cg_block
+        self._iterate = torch.compile(_cg_iteration, dynamic=False) if compiled else _cg_iteration
 
     def _rows_on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         """L's rows as a padded table: column indices (N, D) and values (N, D), padding pointing at the row with 0."""
@@ -190,7 +188,8 @@ class CGSystem(_KnnSystem):
             rz = (r * z).sum(dim=0)
             while iterations < self.max_iter:
                 steps = min(self.check_every, self.max_iter - iterations)
-                x, r, p, rz = self._block(x, r, p, rz, *self._rows_on(b.device), inv_diag, self.lam, steps)
+                for _ in range(steps):
+                    x, r, p, rz = self._iterate(x, r, p, rz, *self._rows_on(b.device), inv_diag, self.lam)
                 iterations += steps
                 # Each check waits for the device; a block of iterations between checks keeps its queue full.
                 if (r.norm(dim=0) / safe_norm).max().item() <= self.tol:
