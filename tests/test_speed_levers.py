@@ -181,6 +181,22 @@ def test_cg_checked_every_k_iterations_meets_its_tolerance(lam, rng):
             CGSystem(lap, lam, check_every=every)
 
 
+def test_compiled_cg_iteration_matches_the_eager_one_and_the_dense_solve(rng):
+    """`precond.cg_compile`: the same float64 iteration through torch.compile; the fused reductions may sum in
+    another order, so iterates differ by rounding only (bound 1e-12 relative), and the solution meets tol."""
+    points = rng.normal(size=(60, 3))
+    lap = knn_laplacian(points, 5)
+    b = torch.tensor(rng.normal(size=(60, 3)))
+    exact = np.linalg.solve(np.eye(60) + 8.0 * lap.toarray(), b.numpy())
+    eager = CGSystem(lap, 8.0, tol=1e-9, max_iter=200, check_every=4)
+    compiled = CGSystem(lap, 8.0, tol=1e-9, max_iter=200, check_every=4, compiled=True)
+    x_eager, x_compiled = eager.solve(b), compiled.solve(b)
+    assert compiled.last_iterations == eager.last_iterations
+    torch.testing.assert_close(x_compiled, x_eager, rtol=1e-12, atol=1e-12 * float(x_eager.abs().max()))
+    error = np.linalg.norm(x_compiled.numpy() - exact, axis=0)
+    assert (error <= 1e-9 * np.linalg.norm(b.numpy(), axis=0)).all()
+
+
 # ---- 5, 6, 7: batched render and loss, fused Adam ----
 
 

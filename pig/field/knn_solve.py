@@ -18,7 +18,10 @@ right-hand side is copied to the CPU in float64, solved, and copied back (one ho
 solve; the 100k x 3 solve itself takes about 0.04 s, benchmarks/NOTES.md).
 
 `CGSystem` is Jacobi-preconditioned conjugate gradients in torch on the right-hand side's device, every
-column solved at once. Each `slot` (e.g. "forward", "backward") keeps its last solution as the next warm
+column solved at once. Its iterations multiply by L through a padded table of L's rows (a gather, which
+torch.compile fuses with the rest of the iteration when `compiled`); the residual is read back to the host
+every `check_every` iterations, each read a synchronisation (a stop can come up to check_every - 1
+iterations late, never early). Each `slot` (e.g. "forward", "backward") keeps its last solution as the next warm
 start, since successive optimisation steps solve nearby systems. It stops when every column's relative
 residual |b - A x| / |b| <= tol, where the residual that CG updates is confirmed by recomputing b - A x
 (CG restarts from there if rounding made them drift apart); so each column's error is at most tol |b|,
