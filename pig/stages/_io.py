@@ -152,12 +152,13 @@ def read_record(path: str | Path, expected: str) -> dict:
 
 
 def write_png(path: str | Path, image: np.ndarray) -> None:
-    """(H, W, 3) RGB float in [0, 1] or uint8 -> 8-bit PNG."""
+    """(H, W, 3) RGB or (H, W, 4) RGBA, float in [0, 1] or uint8 -> 8-bit PNG."""
     path = Path(path)
     if image.dtype != np.uint8:
         image = np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
+    bgr = image[..., [2, 1, 0, 3]] if image.shape[-1] == 4 else image[..., ::-1]  # OpenCV's channel order
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(image[..., ::-1])):
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(bgr)):
             raise OSError(f"{path}: OpenCV could not write the PNG")
 
 

@@ -1,0 +1,57 @@
+"""Animate stage: drive a fitted avatar with a motion clip (or hold a pose) and render a video from a capture camera or an orbit.
+
+Writes --output/animation.webm (VP9, browser-playable), animation.json, and with --png / --exr the frames
+(PNG with alpha; EXR with R, G, B, A and depth Z). The library call is pig.avatar.animation.animate.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+from pig.avatar.animation import Orbit, animate
+from pig.config import load_profile, load_section
+from pig.render.api import RasterizerConfig
+from pig.stages._cli import add_common_arguments, run_cli
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pig.stages.animate", description=__doc__.split("\n")[0])
+    parser.add_argument("--checkpoint", type=Path, required=True, help="avatar.pt of the fit stage")
+    parser.add_argument("--motion", type=Path, default=None,
+                        help="motion npz: AMASS (poses (N, 156) SMPL-H or (N, 165) SMPL-X, trans, mocap_framerate), "
+                             "THuman4 smpl_params.npz or DNA-style fullpose (N, 55, 3); without it the avatar's first "
+                             "training pose is held still (a turntable with the orbit)")
+    parser.add_argument("--output", type=Path, required=True, help="folder for animation.webm, animation.json, frames/")
+    parser.add_argument("--camera", default=None, help="capture camera id to render from (needs --capture); default: orbit")
+    parser.add_argument("--capture", type=Path, default=None, help="preprocessed capture the --camera belongs to")
+    parser.add_argument("--lod", type=int, default=None, help="level of detail (0 = coarsest; default: the finest)")
+    parser.add_argument("--frames", default=None, help="motion frames START:STOP[:STEP] (default: all)")
+    parser.add_argument("--fps", type=float, default=None, help="resample the motion to this frame rate (default: its own)")
+    parser.add_argument("--up", default=None, choices=["+x", "-x", "+y", "-y", "+z", "-z"],
+                        help="the capture's up axis (default: inferred from the avatar's training poses)")
+    parser.add_argument("--orbit-radius", type=float, default=None, help="metres (default: fit the subject in view)")
+    parser.add_argument("--orbit-height", type=float, default=Orbit.height, help="metres above the subject's centre")
+    parser.add_argument("--orbit-period", type=float, default=Orbit.period_s, help="seconds per revolution")
+    parser.add_argument("--size", type=int, nargs=2, default=(Orbit.width, Orbit.height_px), metavar=("WIDTH", "HEIGHT"),
+                        help="orbit camera image size in pixels")
+    parser.add_argument("--seconds", type=float, default=None, help="length of a still pose's video (default: one revolution)")
+    parser.add_argument("--png", action="store_true", help="also write frames/NNNNN.png (RGBA)")
+    parser.add_argument("--exr", action="store_true", help="also write frames/NNNNN.exr (R, G, B, A, depth Z)")
+    parser.add_argument("--profile", default="cpu-demo", help="compute profile (its rasterizer section)")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
+    add_common_arguments(parser)
+    parser.add_argument("--overwrite", action="store_true", help="replace an --output folder the animate stage did not write")
+    args = parser.parse_args(argv)
+    orbit = Orbit(radius=args.orbit_radius, height=args.orbit_height, period_s=args.orbit_period, width=args.size[0],
+                  height_px=args.size[1])
+    rasterizer = load_section(load_profile(args.profile), "rasterizer", RasterizerConfig)
+    video = animate(args.checkpoint, args.output, args.motion, args.camera, args.capture, args.lod, args.frames, args.fps,
+                    args.up, orbit, args.seconds, args.png, args.exr, args.device, rasterizer, args.overwrite)
+    print(video)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_cli(main))
