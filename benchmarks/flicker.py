@@ -32,7 +32,7 @@ def level_flicker(capture: Capture, level_dir: Path, cameras: list[str], frames:
             if not path.exists() or not capture.has(cam, frame):
                 previous = None
                 continue
-            render = read_png(path).astype(np.float32) / 255
+            render = read_png(path)
             truth = capture.image(cam, frame) * capture.mask(cam, frame)[..., None]
             if previous is not None:
                 d_render, d_truth = render - previous[0], truth - previous[1]
