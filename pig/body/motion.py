@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import zipfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -126,7 +127,9 @@ def read_motion(path: str | Path, fps: float | None = None, hands_mean: np.ndarr
                               "(the body model's hands_mean) so it can be added to the hand joints")
         motion = _from_params(arrays, path, from_dna, DNA_LAYOUT, DNA_FPS, np.asarray(hands_mean, dtype=np.float64))
     else:
-        raise MotionError(f"{path}: no known motion layout (keys {sorted(arrays)}); expected {expected}")
+        with zipfile.ZipFile(path) as archive:  # read_npz checked it; list every member, not only the known ones
+            keys = sorted(name[:-4] for name in archive.namelist() if name.endswith(".npy"))
+        raise MotionError(f"{path}: no known motion layout (keys {keys}); expected {expected}")
     if fps is not None:
         if not (math.isfinite(fps) and fps > 0):
             raise MotionError(f"{path}: fps must be positive and finite, got {fps}")
@@ -159,7 +162,8 @@ def _from_amass(arrays, path: Path) -> Motion:
     n = _frame_count(poses, "poses", path, AMASS_LAYOUT)
     trans = _finite(arrays, "trans", path, AMASS_LAYOUT)
     if trans.shape != (n, 3):
-        raise MotionError(f"{path}: `trans` has shape {trans.shape}; expected ({n}, 3) to match `poses` ({AMASS_LAYOUT})")
+        raise MotionError(f"{path}: `trans` has shape {trans.shape}; expected ({n}, 3) to match `poses` "
+                          f"({AMASS_LAYOUT})")
     rate = _finite(arrays, rate_key, path, AMASS_LAYOUT)
     if rate.size != 1 or not rate.item() > 0:
         raise MotionError(f"{path}: `{rate_key}` is {rate.tolist()}; expected one positive frame rate ({AMASS_LAYOUT})")
@@ -360,7 +364,7 @@ def write_demo_motion(path: str | Path = DEMO_MOTION) -> Path:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--write-demo", metavar="PATH", type=Path, required=True,
-                        help=f"write the demo motion clip (shipped as {DEMO_MOTION.relative_to(DEMO_MOTION.parents[3])})")
+                        help="write the demo motion clip (shipped as pig/data/motions/demo.npz)")
     args = parser.parse_args(argv)
     print(write_demo_motion(args.write_demo))
 
