@@ -271,7 +271,7 @@ def lowest_height(body_model: BodyModel, betas, full_pose: np.ndarray, transl: n
     return lowest
 
 
-def capture_frame(source, num_frames: int = 4) -> tuple[np.ndarray, float, np.ndarray]:
+def capture_frame(source, num_frames: int = 8) -> tuple[np.ndarray, float, np.ndarray]:
     """(up (3,) unit, ground height along up, centre (3,)) of a capture, from its training poses.
 
     source: an AvatarModel (its `pose_init`, `transl`, `betas_init`, `body_model`) or a tuple
