@@ -174,7 +174,7 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
         motion = Motion(full_pose=pose, transl=model.transl[:1].cpu().double().numpy().repeat(count, axis=0), fps=rate,
                         betas=None, source=f"{checkpoint} (training timestep 0, still)")
     else:
-        motion = read_motion(motion_path)
+        motion = read_motion(motion_path, hands_mean=model.body_model.hands_mean.cpu().numpy())  # DNA-style fits
         motion = motion.select(frame_range(frames, len(motion.full_pose)))
         if fps is not None:
             motion = motion.resample(fps)
