@@ -254,14 +254,13 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(checkpoint, motion, t
     assert f"--frames '2:9': {motion_path} has 5 frames (0..4), so STOP may be at most 5" in err
     assert "give one with --motion FILE" in _error(capsys, [*base, "--frames", "0:2"])
     assert f"{tmp_path / 'm.npz'}: motion file not found" in _error(capsys, [*base, "--motion", str(tmp_path / "m.npz")])
-    bad = {"flat.npz": dict(fullpose=np.zeros((4, 165)), transl=np.zeros((4, 3))),
-           "short.npz": dict(fullpose=np.zeros((4, 55, 3)), transl=np.zeros((3, 3))),
+    # The motion reader's own messages (tests/test_motion.py covers every layout); here: they reach the user.
+    bad = {"short.npz": dict(fullpose=np.zeros((4, 55, 3)), transl=np.zeros((3, 3))),
            "nan.npz": dict(fullpose=np.zeros((4, 55, 3)), transl=np.array([[0, 0, 0], [0, 0, 0], [np.nan, 0, 0], [0, 0, 0]])),
-           "nokey.npz": dict(poses=np.zeros((4, 55, 3)), transl=np.zeros((4, 3)))}
-    messages = {"flat.npz": "full pose of shape (4, 165); expected (N, 55, 3)",
-                "short.npz": "translation of shape (3, 3); expected (4, 3)",
-                "nan.npz": "translation holds NaN or inf in 1 frames, the first is frame 2",
-                "nokey.npz": "no 'fullpose'; expected a motion npz"}
+           "nokey.npz": dict(transl=np.zeros((4, 3)))}
+    messages = {"short.npz": "'transl' has shape (3, 3), expected (4, 3)",
+                "nan.npz": "'transl' contains NaN or infinite values (first at index [2, 0])",
+                "nokey.npz": "no known motion layout (keys ['transl'])"}
     for name, arrays in bad.items():
         np.savez(tmp_path / name, **arrays)
         assert f"{tmp_path / name}: {messages[name]}" in _error(capsys, [*base, "--motion", str(tmp_path / name)])

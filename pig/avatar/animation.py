@@ -88,25 +88,6 @@ class VideoWriter:
         self._writer.release()
 
 
-def frame_range(spec: str | None, count: int) -> slice:
-    """`START:STOP[:STEP]` (Python slice syntax, empty parts allowed) -> slice over `count` frames; None: all."""
-    if spec is None:
-        return slice(0, count)
-    parts = spec.split(":")
-    try:
-        if len(parts) not in (2, 3):
-            raise ValueError
-        values = [int(p) if p.strip() else None for p in parts]
-    except ValueError:
-        raise ValueError(f"--frames {spec!r}: expected START:STOP or START:STOP:STEP with integers (e.g. 0:120:2)") from None
-    chosen = slice(*values)
-    if chosen.step is not None and chosen.step <= 0:
-        raise ValueError(f"--frames {spec!r}: the step must be positive")
-    if not range(count)[chosen]:
-        raise ValueError(f"--frames {spec!r} selects no frame of the motion's {count}")
-    return chosen
-
-
 @torch.no_grad()
 def subject_bounds(model, betas: torch.Tensor, poses: np.ndarray, transl: np.ndarray, samples: int = 16) -> tuple[np.ndarray, float]:
     """(centre (3,), size in metres) of the posed body over a motion: the middle of the vertices' bounding box over
@@ -146,6 +127,7 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
     """
     from pig.avatar.checkpoint import load_avatar
     from pig.avatar.driver import AvatarDriver
+    from pig.avatar.export import frame_selection
     from pig.body.motion import Motion, align_motion, capture_frame, read_motion
     from pig.config import resolve_device
     from pig.data.exr import write_exr
@@ -175,7 +157,8 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
                         betas=None, source=f"{checkpoint} (training timestep 0, still)")
     else:
         motion = read_motion(motion_path, hands_mean=model.body_model.hands_mean.cpu().numpy())  # DNA-style fits
-        motion = motion.select(frame_range(frames, len(motion.full_pose)))
+        chosen = frame_selection(frames, motion.num_frames, str(motion_path))
+        motion = motion.select(slice(int(chosen[0]), int(chosen[-1]) + 1, int(chosen[1] - chosen[0]) if len(chosen) > 1 else 1))
         if fps is not None:
             motion = motion.resample(fps)
         motion = align_motion(motion, model.body_model, driver.betas, target_up, ground, centre, up)

@@ -140,23 +140,29 @@ def export_avatar(checkpoint: str | Path, output: str | Path, lod: int | None = 
                   frames: str | None = None, motion_source: str | Path | None = None, device: str | torch.device = "cpu",
                   overwrite: bool = False) -> Path:
     """Write the export folder `output` (see the module docstring) of the avatar in `checkpoint` at level `lod`
-    (default: the finest); with `poses` (N, 55, 3) and `transl` (N, 3) of the motion `motion_source` also the
-    frames `frames` selects ("START:STOP[:STEP]", default all). `output` may replace only an earlier export
-    unless `overwrite`; nothing is written unless every check passes. Returns `output`."""
+    (default: the finest); with a motion, `poses` (N, 55, 3) and `transl` (N, 3) or else the motion file
+    `motion_source` (read by pig.body.motion.read_motion, any of its layouts), also the frames `frames` selects
+    ("START:STOP[:STEP]", default all). `output` may replace only an earlier export unless `overwrite`; nothing
+    is written unless every check passes. Returns `output`."""
     from pig.avatar.checkpoint import load_avatar
+    from pig.body.motion import read_motion
     from pig.stages.render import bake_preconditioning
 
     checkpoint, output, source = Path(checkpoint), Path(output), str(motion_source or "the motion")
     if (poses is None) != (transl is None):
         raise ValueError("export: a motion needs both its poses and its translations")
-    if poses is None and frames is not None:
+    has_motion = poses is not None or motion_source is not None
+    if not has_motion and frames is not None:
         raise ValueError(f"--frames {frames!r} selects frames of a motion; give one with --motion FILE")
-    inputs = [checkpoint] + ([Path(motion_source)] if poses is not None and motion_source is not None else [])
+    inputs = [checkpoint] + ([Path(motion_source)] if motion_source is not None else [])
     output = claim_dir(output, STAGE, inputs, overwrite)
+    model = load_avatar(checkpoint, device)
+    if poses is None and motion_source is not None:
+        motion = read_motion(motion_source, hands_mean=model.body_model.hands_mean.cpu().numpy())
+        poses, transl = motion.full_pose, motion.transl
     if poses is not None:
         poses, transl = _checked_motion(poses, transl, source)
         chosen = frame_selection(frames, len(poses), source)
-    model = load_avatar(checkpoint, device)
     if lod is None:
         lod = model.num_levels - 1
     if not 0 <= lod < model.num_levels:

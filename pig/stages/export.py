@@ -9,26 +9,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from pig.avatar.export import export_avatar
-from pig.body.npz import read_npz
 from pig.config import resolve_device
 from pig.stages._cli import add_common_arguments, run_cli
 
-MOTION_FORM = "a motion npz with 'fullpose' (N, 55, 3) SMPL-X axis-angles and 'transl' (N, 3)"
-
-
-def _read_motion(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(full pose (N, 55, 3), translation (N, 3)) of a DNA-Rendering-style SMPL-X npz; shapes are checked by
-    `export_avatar`."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: motion file not found; expected {MOTION_FORM}")
-    arrays = read_npz(path, ValueError, MOTION_FORM, keys=("fullpose", "transl"))
-    missing = [key for key in ("fullpose", "transl") if key not in arrays]
-    if missing:
-        raise ValueError(f"{path}: no {' or '.join(repr(k) for k in missing)}; expected {MOTION_FORM}")
-    return arrays["fullpose"], arrays["transl"]
+MOTION_FORM = ("a motion npz: AMASS (poses (N, 156) SMPL-H or (N, 165) SMPL-X, trans, mocap_framerate), THuman4 "
+               "smpl_params.npz or DNA-style fullpose (N, 55, 3) with transl")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,8 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier export")
     args = parser.parse_args(argv)
-    poses, transl = _read_motion(args.motion) if args.motion is not None else (None, None)
-    output = export_avatar(args.checkpoint, args.output, args.lod, poses, transl, args.frames, args.motion,
+    output = export_avatar(args.checkpoint, args.output, args.lod, None, None, args.frames, args.motion,
                            resolve_device(args.device, "--device"), args.overwrite)
     print(output)
     return 0
