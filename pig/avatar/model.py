@@ -19,7 +19,7 @@ from pig.body.transport import barycentric_points, surface_frames, transport_poi
 
 from .anchors import Attachment, triangle_areas
 from .config import AvatarConfig
-from .decoders import AnchorDecoder
+from .decoders import AnchorDecoder, DecodedAnchors
 from .nearest_pose import nearest_timestep
 from .refine import BodyRefiner, refined_joints
 from .time_embedding import lod_input, num_frequencies, time_embedding
@@ -106,30 +106,49 @@ class AvatarModel(nn.Module):
         if not 0 <= lod < self.num_levels:
             raise ValueError(f"lod must lie in 0..{self.num_levels - 1}, got {lod}")
         timesteps = timesteps.to(self.pose_init.device)
-        n = self.level_sizes[lod]
         x = self.canonical_anchors()
-        refine = self.refiner.net is not None
-        # Only the refiner needs every anchor's feature (its global mean z_bar); decoders use the level's.
-        z_all = self.grid(x if refine else x[:n])
-        z = z_all[:n]
-        betas, pose = self.refined_params(timesteps, z_all.mean(dim=0) if refine else None)
+        z, z_mean = self.anchor_features(x, lod)
+        betas, pose = self.refined_params(timesteps, z_mean)
         if poses is not None:
             pose = poses.to(pose)
         translation = self.transl[timesteps] if transl is None else transl.to(self.transl)
         body = self.body_model(pose, betas, self.expression[timesteps], translation)
+        centres, rotation = self.transport(x, body.vertices, lod)
+        return self.splats(centres, rotation, self.decode(z, timesteps, lod))
+
+    def anchor_features(self, x: torch.Tensor, lod: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Grid features z (n, d) of the level's anchors among canonical anchors `x` (N, 3), and the refiner's
+        z_bar (d,) over all anchors (None without a refiner)."""
+        n = self.level_sizes[lod]
+        refine = self.refiner.net is not None
+        # Only the refiner needs every anchor's feature (its global mean z_bar); decoders use the level's.
+        z_all = self.grid(x if refine else x[:n])
+        return z_all[:n], z_all.mean(dim=0) if refine else None
+
+    def transport(self, x: torch.Tensor, vertices: torch.Tensor, lod: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Eqs. 2-3 for the level's anchors: posed centres (K, n, 3) and rotations (K, n, 3, 3) on the
+        posed body `vertices` (K, V, 3); `x` (N, 3) are the canonical anchors."""
+        n = self.level_sizes[lod]
         face_ids = self.face_ids[:n]
         faces = self.body_model.faces
-        rotation = transport_rotation(surface_frames(body.vertices, faces, face_ids), self.canonical_frames[:n])
-        posed_init = barycentric_points(body.vertices, faces, face_ids, self.bary[:n])
-        centres = transport_points(x[:n], self.x_init[:n], posed_init, rotation)
+        rotation = transport_rotation(surface_frames(vertices, faces, face_ids), self.canonical_frames[:n])
+        posed_init = barycentric_points(vertices, faces, face_ids, self.bary[:n])
+        return transport_points(x[:n], self.x_init[:n], posed_init, rotation), rotation
 
-        count = timesteps.shape[0]
+    def decode(self, z: torch.Tensor, timesteps: torch.Tensor, lod: int) -> DecodedAnchors:
+        """Eqs. 6-9: decoded attributes (K, n, ...) of the level's features z (n, d) at `timesteps` (K,)."""
+        count, n = timesteps.shape[0], z.shape[0]
         gamma = self.gamma_all[timesteps].to(z.dtype)
         level = torch.full((count, n, 1), lod_input(lod, self.num_levels), dtype=z.dtype, device=z.device)
         y = torch.cat([z.expand(count, n, -1), gamma[:, None].expand(count, n, -1), level], dim=-1)
-        out = self.decoder(y, self.log_scale_prior[lod])
-        quats = quaternion_multiply(matrix_to_quaternion(rotation), out.rotation)
-        return Gaussians(means=centres + out.offset, quats=quats, scales=out.scale, opacities=out.opacity, sh=out.sh)
+        return self.decoder(y, self.log_scale_prior[lod])
+
+    @staticmethod
+    def splats(centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
+        """Eqs. 10-11: mu = x(theta) + d mu, q = q(R) d q, with the decoded scale, opacity and SH."""
+        quats = quaternion_multiply(matrix_to_quaternion(rotation), decoded.rotation)
+        return Gaussians(means=centres + decoded.offset, quats=quats, scales=decoded.scale, opacities=decoded.opacity,
+                         sh=decoded.sh)
 
     def timestep_of_frame(self, frame_id: int) -> int:
         """Training timestep index of a training frame id."""

@@ -1,0 +1,180 @@
+"""Pose-driven rendering of a fitted avatar: per frame only the work that depends on the frame.
+
+`AvatarModel.forward` recomputes everything for every frame: grid features of all anchors (Eq. 1, the
+refiner's z_bar), the refiner over all training timesteps (Eqs. 12-14), then body, transport (Eqs. 2-3) and
+decoders (Eqs. 6-9). With the model fixed, the driver keeps
+- the canonical anchors x (one solve of their preconditioning) and their grid features, once per LOD;
+- the refined betas and the refined pose of every training timestep, once;
+- the nearest training timestep of a query pose (Section 4.1), once per pose (keyed by its bytes);
+- the decoded attributes of (LOD, timestep), which depend on z, gamma(t) and the level only, for the
+  `decoded_cache` most recent pairs: consecutive poses near one training pose skip the decoders.
+Per frame there remain the posed body, the transport of the level's anchors and Eqs. 10-11; the parts
+(`nearest_timestep`, `body`, `transport`, `decoded`, `splats`) are public so that they can be timed apart.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+import torch
+
+from .decoders import DecodedAnchors
+from .model import AvatarModel, Gaussians
+
+
+class AvatarDriver:
+    """Gaussians of a fitted `AvatarModel` for a level of detail and a pose, with per-avatar work cached.
+
+    The model must not change afterwards (the caches hold its outputs); it is put in eval mode and all
+    work runs without gradients. Results equal `model.gaussians` up to float rounding.
+    """
+
+    def __init__(self, model: AvatarModel, decoded_cache: int = 4, pose_cache: int = 4096):
+        if decoded_cache < 0 or pose_cache < 0:
+            raise ValueError(f"AvatarDriver: cache sizes must be >= 0, got decoded_cache={decoded_cache}, pose_cache={pose_cache}")
+        self.model = model.eval()
+        self.decoded_cache, self.pose_cache = decoded_cache, pose_cache
+        self._anchors: torch.Tensor | None = None
+        self._features: dict[int, torch.Tensor] = {}  # lod -> z (n, d)
+        self._z_mean: torch.Tensor | None = None
+        self._refined: tuple[torch.Tensor, torch.Tensor] | None = None  # betas (nb,), pose (T, 55, 3)
+        self._nearest: OrderedDict[bytes, int] = OrderedDict()
+        self._decoded: OrderedDict[tuple[int, int], DecodedAnchors] = OrderedDict()
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.pose_init.device
+
+    # ---- once per avatar / per LOD ----
+
+    @torch.no_grad()
+    def anchors(self) -> torch.Tensor:
+        """Canonical anchors (N, 3), solved once."""
+        if self._anchors is None:
+            self._anchors = self.model.canonical_anchors().detach()
+        return self._anchors
+
+    @torch.no_grad()
+    def features(self, lod: int) -> torch.Tensor:
+        """Grid features (n, d) of the level's anchors. With a refiner, the first call evaluates the grid at
+        all anchors (z_bar needs them) and serves every level from it; without, one evaluation per level."""
+        self._check_lod(lod)
+        if lod not in self._features:
+            model = self.model
+            finest = model.num_levels - 1
+            if model.refiner.net is not None:
+                z_all, self._z_mean = model.anchor_features(self.anchors(), finest)
+                self._features = {level: z_all[:n] for level, n in enumerate(model.level_sizes)}
+            else:
+                self._features[lod] = model.anchor_features(self.anchors(), lod)[0]
+        return self._features[lod]
+
+    @torch.no_grad()
+    def refined(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Refined betas (nb,) and the refined pose (T, 55, 3) of every training timestep, computed once."""
+        if self._refined is None:
+            model = self.model
+            if model.refiner.net is not None:
+                self.features(0)  # sets z_bar
+            steps = torch.arange(model.num_timesteps, device=self.device)
+            self._refined = model.refined_params(steps, self._z_mean)
+        return self._refined
+
+    # ---- per pose / per frame ----
+
+    @torch.no_grad()
+    def nearest_timestep(self, pose) -> int:
+        """Training timestep nearest to a (55, 3) axis-angle pose (numpy or tensor), once per distinct pose."""
+        query = self._pose(pose)
+        key = query.cpu().numpy().tobytes()
+        if key in self._nearest:
+            self._nearest.move_to_end(key)
+            return self._nearest[key]
+        timestep = self.model.nearest_timestep(query)
+        if self.pose_cache:
+            self._nearest[key] = timestep
+            while len(self._nearest) > self.pose_cache:
+                self._nearest.popitem(last=False)
+        return timestep
+
+    @torch.no_grad()
+    def body(self, timestep: int, pose=None, transl=None) -> torch.Tensor:
+        """Posed body vertices (1, V, 3): the refined shape in `pose` (55, 3) or the timestep's refined pose,
+        moved by `transl` (3,) or the timestep's translation; the timestep's expression."""
+        model = self.model
+        betas, poses = self.refined()
+        step = slice(timestep, timestep + 1)
+        full_pose = poses[step] if pose is None else self._pose(pose)[None].to(poses)
+        translation = model.transl[step] if transl is None else self._transl(transl)
+        return model.body_model(full_pose, betas, model.expression[step], translation).vertices
+
+    @torch.no_grad()
+    def transport(self, lod: int, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posed centres (1, n, 3) and transport rotations (1, n, 3, 3) of the level's anchors."""
+        self._check_lod(lod)
+        return self.model.transport(self.anchors(), vertices, lod)
+
+    @torch.no_grad()
+    def decoded(self, lod: int, timestep: int) -> DecodedAnchors:
+        """Decoder outputs (1, n, ...) of the level's anchors at a timestep; the recent pairs are kept."""
+        key = (lod, timestep)
+        if key in self._decoded:
+            self._decoded.move_to_end(key)
+            return self._decoded[key]
+        steps = torch.tensor([timestep], device=self.device)
+        out = self.model.decode(self.features(lod), steps, lod)
+        if self.decoded_cache:
+            self._decoded[key] = out
+            while len(self._decoded) > self.decoded_cache:
+                self._decoded.popitem(last=False)
+        return out
+
+    @staticmethod
+    def splats(centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
+        return AvatarModel.splats(centres, rotation, decoded)
+
+    def gaussians(self, lod: int, pose=None, transl=None, timestep: int | None = None) -> tuple[torch.Tensor, ...]:
+        """(means, quats, scales, opacities, sh) of one frame, as `AvatarModel.gaussians` returns them.
+
+        Without `pose`, the training timestep `timestep` in its refined pose. With `pose` (55, 3) (and
+        optionally `transl` (3,)), the pose drives the transport with the refined shape while gamma(t)
+        comes from `timestep`, by default the training timestep nearest to `pose`.
+        """
+        self._check_lod(lod)
+        if timestep is None:
+            if pose is None:
+                raise ValueError("AvatarDriver.gaussians needs a timestep, a pose, or both")
+            timestep = self.nearest_timestep(pose)
+        if not 0 <= int(timestep) < self.model.num_timesteps:
+            raise ValueError(f"timestep must lie in 0..{self.model.num_timesteps - 1}, got {timestep}")
+        timestep = int(timestep)
+        centres, rotation = self.transport(lod, self.body(timestep, pose, transl))
+        g = self.splats(centres, rotation, self.decoded(lod, timestep))
+        return g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0]
+
+    def forget_poses(self) -> None:
+        """Drop what is cached per pose (nearest timesteps, decoded timesteps); per-LOD work stays."""
+        self._nearest.clear()
+        self._decoded.clear()
+
+    # ---- input checks ----
+
+    def _check_lod(self, lod: int) -> None:
+        if not 0 <= lod < self.model.num_levels:
+            raise ValueError(f"lod must lie in 0..{self.model.num_levels - 1}, got {lod}")
+
+    def _pose(self, pose) -> torch.Tensor:
+        query = torch.as_tensor(np.asarray(pose) if not torch.is_tensor(pose) else pose)
+        if query.numel() != 55 * 3:
+            raise ValueError(f"AvatarDriver: expected a (55, 3) axis-angle pose, found shape {tuple(query.shape)}")
+        if not bool(torch.isfinite(query).all()):  # checked where it lies: host poses cost no device sync
+            raise ValueError("AvatarDriver: the pose holds NaN or infinite values")
+        return query.reshape(55, 3).to(dtype=self.model.pose_init.dtype, device=self.device)
+
+    def _transl(self, transl) -> torch.Tensor:
+        value = torch.as_tensor(np.asarray(transl) if not torch.is_tensor(transl) else transl)
+        if value.numel() != 3:
+            raise ValueError(f"AvatarDriver: expected a (3,) translation, found shape {tuple(value.shape)}")
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError("AvatarDriver: the translation holds NaN or infinite values")
+        return value.reshape(1, 3).to(dtype=self.model.transl.dtype, device=self.device)
