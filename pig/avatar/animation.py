@@ -161,7 +161,7 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
         motion = motion.select(slice(int(chosen[0]), int(chosen[-1]) + 1, int(chosen[1] - chosen[0]) if len(chosen) > 1 else 1))
         if fps is not None:
             motion = motion.resample(fps)
-        motion = align_motion(motion, model.body_model, driver.betas, target_up, ground, centre, up)
+        motion = align_motion(motion, model.body_model, driver.refined()[0], target_up, ground, centre, up)
 
     count = len(motion.full_pose)
     if camera is not None:
@@ -176,7 +176,7 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
         viewmats = np.repeat(cam.viewmat()[None], count, axis=0)
         K, width, height = np.asarray(cam.K), cam.width, cam.height
     else:
-        centre_of_motion, extent = subject_bounds(model, driver.betas, motion.full_pose, motion.transl)
+        centre_of_motion, extent = subject_bounds(model, driver.refined()[0], motion.full_pose, motion.transl)
         viewmats, K = orbit_cameras(count, motion.fps, centre_of_motion, target_up, extent, orbit)
         width, height = orbit.width, orbit.height_px
 
