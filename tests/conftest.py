@@ -26,3 +26,20 @@ def small_capture(tmp_path_factory):
     preprocess(["--input", str(raw), "--output", str(out), "--profile", "test", "--format", "thuman4",
                 "--body-model", str(raw / "body_model.npz"), "--no-progress"])
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_fit(small_capture, tmp_path_factory):
+    """(capture folder, avatar.pt) of a 3-iteration fit of `small_capture` with the test profile."""
+    import yaml
+
+    from pig.avatar.training import fit
+    from pig.config import load_profile
+
+    root = tmp_path_factory.mktemp("tinyfit")
+    profile = load_profile("test")
+    profile.pop("_path")
+    profile["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
+    (root / "profile.yaml").write_text(yaml.safe_dump(profile))
+    return small_capture, fit(small_capture, root / "pig", str(root / "profile.yaml"))
+

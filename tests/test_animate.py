@@ -4,7 +4,6 @@ import json
 import cv2
 import numpy as np
 import pytest
-import yaml
 
 from pig.avatar.animation import Orbit, animate, look_at
 from pig.body.motion import DEMO_MOTION
@@ -14,16 +13,8 @@ CPU = RasterizerConfig(backend="cpu")
 
 
 @pytest.fixture(scope="module")
-def fitted(small_capture, tmp_path_factory):
-    from pig.avatar.training import fit
-    from pig.config import load_profile
-
-    root = tmp_path_factory.mktemp("animate")
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
-    (root / "profile.yaml").write_text(yaml.safe_dump(profile))
-    return small_capture, fit(small_capture, root / "pig", str(root / "profile.yaml"))
+def fitted(tiny_fit):
+    return tiny_fit
 
 
 def _video_frames(path):

@@ -15,10 +15,11 @@ import torch
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import CheckpointError, load_avatar, load_training_state, loss_terms, save_checkpoint
 from pig.avatar.config import AvatarConfig
-from pig.body.model import SMPLX_PARENTS, BodyModel
+from pig.body.model import BodyModel
 from pig.body.params import SmplxParams
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
+from body_fixture import tiny_body_model
 
 FINGERPRINT = {part: f"{i:064x}" for i, part in
                enumerate(("cameras", "smplx", "split", "background", "body_model", "images"))}
@@ -27,25 +28,11 @@ SETTINGS = {"fit": {"iterations": 10, "eval_every": 5, "checkpoint_minutes": 5.0
 TERMS = {"lpips": {"weight": 2.0, "net": "vgg", "state": "weights absent", "detail": "LPIPS vgg backbone: not found"}}
 
 
-def _tiny_body_model(rng) -> dict[str, np.ndarray]:
-    """An SMPL-X-layout body model on an icosphere (162 vertices): these tests need the layout, not a body."""
-    import trimesh
-
-    sphere = trimesh.creation.icosphere(subdivisions=2)
-    count = len(sphere.vertices)
-    weights = rng.random((count, 55)) ** 4
-    regressor = rng.random((55, count))
-    return dict(v_template=np.asarray(sphere.vertices), f=np.asarray(sphere.faces),
-                J_regressor=regressor / regressor.sum(1, keepdims=True), weights=weights / weights.sum(1, keepdims=True),
-                shapedirs=rng.normal(scale=0.01, size=(count, 3, 20)), posedirs=rng.normal(scale=0.01, size=(count, 3, 486)),
-                kintree_table=np.stack([SMPLX_PARENTS, np.arange(55)]))
-
-
 @pytest.fixture(scope="module")
 def spec(tmp_path_factory):
     rng = np.random.default_rng(0)
     path = tmp_path_factory.mktemp("body") / "body_model.npz"
-    np.savez(path, **_tiny_body_model(rng))
+    np.savez(path, **tiny_body_model(rng))
     t = 3
     params = SmplxParams(rng.normal(scale=0.2, size=(t, 55, 3)), rng.normal(size=10), np.zeros((t, 10)),
                          rng.normal(scale=0.1, size=(t, 3)))
@@ -268,7 +255,7 @@ def test_body_model_npz_keeps_the_model_and_drops_pickled_objects(tmp_path):
     the same model as plain arrays."""
     from scipy import sparse
 
-    arrays = _tiny_body_model(np.random.default_rng(1))
+    arrays = tiny_body_model(np.random.default_rng(1))
     path = tmp_path / "SMPLX_NEUTRAL.npz"
     np.savez(path, **{**arrays, "J_regressor": np.array(sparse.csr_matrix(arrays["J_regressor"]), dtype=object),
                       "part2num": np.array({"global": 0}, dtype=object)})

@@ -4,7 +4,6 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from pig.avatar.build import build_avatar
 from pig.avatar.config import AvatarConfig
@@ -161,16 +160,8 @@ def test_bad_inputs_get_clear_errors(avatars):
 
 
 @pytest.fixture(scope="module")
-def fitted(small_capture, tmp_path_factory):
-    from pig.avatar.training import fit
-    from pig.config import load_profile
-
-    root = tmp_path_factory.mktemp("driverstage")
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
-    (root / "profile.yaml").write_text(yaml.safe_dump(profile))
-    return small_capture, fit(small_capture, root / "pig", str(root / "profile.yaml"))
+def fitted(tiny_fit):
+    return tiny_fit
 
 
 @pytest.mark.slow

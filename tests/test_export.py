@@ -11,12 +11,12 @@ from pig.avatar.build import body_model_npz, build_avatar
 from pig.avatar.checkpoint import load_avatar, save_checkpoint
 from pig.avatar.config import AvatarConfig
 from pig.avatar.export import write_splat_ply
-from pig.body.model import SMPLX_PARENTS
 from pig.body.params import SmplxParams
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.stages._cli import run_cli
 from pig.stages.export import main
+from body_fixture import tiny_body_model
 
 SH_DEGREE = 2
 TERMS = {"lpips": {"weight": 0.0, "net": "vgg", "state": "off", "detail": ""}}
@@ -68,26 +68,12 @@ def assert_ply_matches(path, gaussians) -> dict[str, np.ndarray]:
     return read
 
 
-def _tiny_body_model(rng) -> dict[str, np.ndarray]:
-    """An SMPL-X-layout body model on an icosphere: these tests need the layout, not a body."""
-    import trimesh
-
-    sphere = trimesh.creation.icosphere(subdivisions=2)
-    count = len(sphere.vertices)
-    weights = rng.random((count, 55)) ** 4
-    regressor = rng.random((55, count))
-    return dict(v_template=np.asarray(sphere.vertices), f=np.asarray(sphere.faces),
-                J_regressor=regressor / regressor.sum(1, keepdims=True), weights=weights / weights.sum(1, keepdims=True),
-                shapedirs=rng.normal(scale=0.01, size=(count, 3, 20)), posedirs=rng.normal(scale=0.01, size=(count, 3, 486)),
-                kintree_table=np.stack([SMPLX_PARENTS, np.arange(55)]))
-
-
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """avatar.pt of a small untrained avatar (3 levels of 75, 150, 300 anchors, SH degree 2, 3 timesteps)."""
     rng = np.random.default_rng(0)
     root = tmp_path_factory.mktemp("export")
-    np.savez(root / "body_model.npz", **_tiny_body_model(rng))
+    np.savez(root / "body_model.npz", **tiny_body_model(rng))
     t = 3
     params = SmplxParams(rng.normal(scale=0.3, size=(t, 55, 3)), rng.normal(size=10), np.zeros((t, 10)),
                          rng.normal(scale=0.1, size=(t, 3)))

@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pandas as pd
 import pytest
-import yaml
 
 from pig.render.api import RasterizerConfig
 from pig.stages._io import read_png
@@ -15,16 +14,8 @@ from pig.stages.render import render_split
 
 
 @pytest.fixture(scope="module")
-def fitted(small_capture, tmp_path_factory):
-    from pig.config import load_profile
-    from pig.avatar.training import fit
-
-    root = tmp_path_factory.mktemp("renderstage")
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
-    (root / "profile.yaml").write_text(yaml.safe_dump(profile))
-    return small_capture, fit(small_capture, root / "pig", str(root / "profile.yaml"))
+def fitted(tiny_fit):
+    return tiny_fit
 
 
 def _halve_camera(capture, camera: str) -> None:
