@@ -35,7 +35,7 @@ from pig.config import load_profile, load_section
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.render.api import render_gaussians
-from pig.stages.render import bake_preconditioning
+from pig.field.precondition import bake_preconditioning
 
 
 def build_unfitted(profile: str, anchors: int | None, timesteps: int, seed: int = 0):

@@ -1,5 +1,5 @@
 """Per-frame avatar evaluation in the render stage: preconditioned tensors baked to their value x once
-(pig.stages.render.bake_preconditioning) against solving x = (I + lambda L)^-1 u on every frame.
+(pig.field.precondition.bake_preconditioning) against solving x = (I + lambda L)^-1 u on every frame.
 
     python benchmarks/render_stage.py --checkpoint results/synthetic/subject00/pig/avatar.pt [--repeats 6]
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 
 from pig.avatar.checkpoint import load_avatar
-from pig.stages.render import bake_preconditioning
+from pig.field.precondition import bake_preconditioning
 
 
 def main() -> None:

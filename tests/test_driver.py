@@ -11,7 +11,7 @@ from pig.avatar.driver import AvatarDriver
 from pig.body.params import SmplxParams
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
-from pig.stages.render import bake_preconditioning
+from pig.field.precondition import bake_preconditioning
 
 
 @pytest.fixture(scope="module")

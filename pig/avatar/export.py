@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pig.field.precondition import bake_preconditioning
 from pig.stages._io import atomic_path
 from pig.stages._outputs import build_dir, claim_dir
 
@@ -146,7 +147,6 @@ def export_avatar(checkpoint: str | Path, output: str | Path, lod: int | None = 
     is written unless every check passes. Returns `output`."""
     from pig.avatar.checkpoint import load_avatar
     from pig.body.motion import read_motion
-    from pig.stages.render import bake_preconditioning
 
     checkpoint, output, source = Path(checkpoint), Path(output), str(motion_source or "the motion")
     if (poses is None) != (transl is None):

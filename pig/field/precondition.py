@@ -173,3 +173,14 @@ def precondition_anchors(points: torch.Tensor, cfg: PrecondConfig) -> Preconditi
     """Anchor positions (N, 3) as a PreconditionedTensor coupled by the KNN graph of these initial points."""
     system = None if cfg.form == "none" else knn_system(points, cfg)
     return PreconditionedTensor(points, system, cfg.form)
+
+
+@torch.no_grad()
+def bake_preconditioning(model: nn.Module) -> None:
+    """Store each preconditioned tensor's current value x in place of its optimised variable, in all of `model`.
+
+    Rendering needs only x; with the substitution form x = (I + lambda L)^-1 u would otherwise be
+    solved again for every frame, which is training machinery, not per-frame work."""
+    for module in model.modules():
+        if isinstance(module, PreconditionedTensor) and module.form != "none":
+            module.bake()

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from pig.avatar.driver import AvatarDriver
 from pig.config import load_profile, load_section, resolve_device
 from pig.data.exr import write_exr
-from pig.field.precondition import PreconditionedTensor
+from pig.field.precondition import bake_preconditioning
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_json, write_png
@@ -47,17 +47,6 @@ def model_megabytes(model: torch.nn.Module, num_anchors: int, level_size: int) -
         share = level_size / num_anchors if tensor.dim() and tensor.shape[0] == num_anchors else 1.0
         total += tensor.numel() * tensor.element_size() * share
     return total / 2**20
-
-
-@torch.no_grad()
-def bake_preconditioning(model: torch.nn.Module) -> None:
-    """Store each preconditioned tensor's current value x in place of its optimised variable.
-
-    Rendering needs only x; with the substitution form x = (I + lambda L)^-1 u would otherwise be
-    solved again for every frame, which is training machinery, not per-frame work."""
-    for module in model.modules():
-        if isinstance(module, PreconditionedTensor) and module.form != "none":
-            module.bake()
 
 
 @dataclass
