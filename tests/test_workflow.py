@@ -238,3 +238,20 @@ def test_evaluate_names_changed_levels_as_the_likely_cause(small_capture, tmp_pa
     with pytest.raises(FileNotFoundError, match=r"LOD\(s\) \[2\] were not rendered; found lod\[0, 1\].*avatar\.levels"):
         evaluate_split(small_capture, renders, "novel_view", tmp_path / "metrics", EvaluateConfig(device="cpu"), [2])
     assert not (tmp_path / "metrics").exists()
+
+
+def test_animate_examples_render_a_turntable_and_the_shipped_demo_motion(recorded):
+    assert scheduled(recorded, "animate_examples") == {"animate": 2, "animate_examples": 1}  # the fit is up to date
+    output = snakemake_run(recorded, "animate_examples", "--dry-run", "--printshellcmds")
+    commands = {}
+    lines = [line.split("Shell command: ", 1)[1] for line in output.splitlines() if "Shell command: " in line]
+    for command in (line for line in lines if line != "None"):  # animate_examples itself runs nothing
+        words = shlex.split(command)
+        commands[Path(words[words.index("--output") + 1]).name] = words
+    assert sorted(commands) == ["demo", "turntable"]
+    for clip, words in commands.items():
+        assert words[words.index("--checkpoint") + 1] == f"results/thuman4/{SUBJECT}/pig/avatar.pt"
+        assert words[words.index("--output") + 1] == f"results/thuman4/{SUBJECT}/pig/animate/{clip}"
+    assert "--motion" not in commands["turntable"]
+    motion = Path(commands["demo"][commands["demo"].index("--motion") + 1])
+    assert motion.name == "demo.npz" and motion.is_file()
