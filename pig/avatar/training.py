@@ -267,7 +267,7 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
     `phase(name)` wraps each part of an iteration ("sample": waiting for the iteration's views, "model",
-    "render", "loss", "backward", "step"; render and loss once per view batch): a hook for profilers
+    "render", "loss", "backward", "step"; render and loss once per view batch, or once with `batched_render`): a hook for profilers
     (benchmarks/fit_gpu.py). The wait for the views is also logged (train_log.csv's data_wait_ms) and its
     mean printed at the end.
     """
