@@ -349,6 +349,20 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
         waits = []
         window: dict[str, torch.Tensor] = {}  # loss terms summed on the device since the last logged row
         window_waits: list[float] = []
+
+        def window_row(iteration: int, lod) -> dict:
+            """The log row of the iterations since the last one (means), and a fresh window. Reading the loss back
+            waits for the device: once per logged row."""
+            nonlocal window, window_waits
+            count = max(len(window_waits), 1)
+            row = {"iteration": iteration, "wall_s": round(wall_before + time.perf_counter() - started, 3), "lod": lod,
+                   "lpips_term": lpips_record["state"], "heldout_psnr": "",
+                   "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3),
+                   **{key: window[name].item() / count if name in window else "" for key, name in
+                      (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
+            window, window_waits = {}, []
+            return row
+
         iteration = start
         progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
         for i in progress:
@@ -381,13 +395,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
             evaluate = iteration % fit_cfg.eval_every == 0 or iteration == fit_cfg.iterations
             save = iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes
             if evaluate or save or iteration % fit_cfg.log_every == 0:
-                # Reading the loss back waits for the device: once per logged row, a mean over the window.
-                count = len(window_waits)
-                row = {"iteration": iteration, "wall_s": round(wall_before + time.perf_counter() - started, 3), "lod": batch.lod,
-                       "lpips_term": lpips_record["state"], "heldout_psnr": "", "data_wait_ms": round(1000 * float(np.mean(window_waits)), 3),
-                       **{key: window[name].item() / count if name in window else "" for key, name in
-                          (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
-                window, window_waits = {}, []
+                row = window_row(iteration, batch.lod)
                 if evaluate:
                     t0 = time.perf_counter()
                     row["heldout_psnr"] = held_out.psnr(model, raster)
@@ -402,11 +410,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
         else:
             iteration = fit_cfg.iterations
         if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
-            count = max(len(window_waits), 1)
-            rows.append({"iteration": iteration, "wall_s": round(wall_before + time.perf_counter() - started, 3), "lod": "",
-                         "lpips_term": lpips_record["state"], "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3), "heldout_psnr": "",
-                         **{key: window[name].item() / count if name in window else "" for key, name in
-                            (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}})
+            rows.append(window_row(iteration, ""))
         if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
             rows[-1]["heldout_psnr"] = held_out.psnr(model, raster)
     if waits:
