@@ -6,7 +6,10 @@ plus noise, so the nearest timestep changes):
 - fast: AvatarDriver.gaussians with its per-pose caches cleared (nearest timestep and decoders run) + raster;
 - fast, same timestep: a new pose near an already decoded timestep (the decoders are skipped);
 - the fast frame's parts, each synchronised: nearest timestep, body, transport, decoders, assembly, raster;
-- raster alone: the rasterizer on pre-computed splats of the same frames (for "same timestep": of those frames).
+- raster alone: the rasterizer on pre-computed splats of the same frames (for "same timestep": of those frames);
+- real time: AvatarDriver(frame_graph=True).posed_frame (every timestep decoded once per LOD; on CUDA the frame
+  is one compiled CUDA graph: pose -> nearest timestep -> body -> transport -> gather -> splats) + raster, against
+  raster alone on its splats, and its image's mean absolute difference from the old path's (second table).
 The device is synchronised around every timed call. Without --checkpoint the avatar is built from the
 profile's sizes without a fit (the stand-in body, --timesteps random training poses): its decoders are
 untrained, so the splats are random-ish and only the timings mean anything.
@@ -203,7 +206,39 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {lod} | {model.level_sizes[lod]} | {old_ms:.2f} | {fast_ms:.2f} | {1e3 / fast_ms:.1f} | {cells} | "
                   f"{alone_ms:.2f} | {fast_ms / alone_ms:.2f} | {same_ms:.2f} | {same_ms / same_alone_ms:.2f} | "
                   f"{old_ms / fast_ms:.2f} |", flush=True)
+        real_time_table(model, poses, rows, transl, raster, args.repeats, device)
     return 0
+
+
+def real_time_table(model, poses, rows, transl, raster, repeats: int, device: torch.device) -> None:
+    """The real-time path per LOD: frame time, raster alone on its splats, image parity with the old path."""
+    print(f"\nReal-time path (AvatarDriver frame_graph=True), median of {repeats} frames [ms]; set-up = decoding every "
+          f"timestep at the LOD + compiling + capturing, once")
+    header = "| LOD | splats | frame | FPS | pose -> splats | raster alone | frame / raster alone | image MAD vs old | set-up s |"
+    print(header + "\n|" + "---|" * (header.count("|") - 1))
+    driver = AvatarDriver(model, frame_graph=True)
+    for lod in range(model.num_levels):
+        if not driver.frame_graph_fits(lod):
+            print(f"| {lod} | {model.level_sizes[lod]} | decoded timesteps take {driver.decoded_all_bytes(lod) / 2**30:.1f} GiB, "
+                  f"over the budget |")
+            continue
+        sync(device)
+        start = time.perf_counter()
+        driver.posed_frame(lod, poses[0], transl)
+        sync(device)
+        setup_s = time.perf_counter() - start
+        frame_ms = median_ms(lambda i: raster(driver.posed_frame(lod, poses[i], transl)[0]), repeats, device)
+        splats_ms = median_ms(lambda i: driver.posed_frame(lod, poses[i], transl), repeats, device)
+        kept = [[x.clone() for x in driver.posed_frame(lod, p, transl)[0]] for p in poses]
+        alone_ms = median_ms(lambda i: raster(kept[i]), repeats, device)
+        differences = []
+        for i in range(min(repeats + 1, 5)):
+            t = model.nearest_timestep(poses[i])
+            reference = raster([s.float() for s in model.gaussians(t, lod, rows[i])])
+            differences.append(float((raster(kept[i]) - reference).abs().mean()))
+        del kept
+        print(f"| {lod} | {model.level_sizes[lod]} | {frame_ms:.3f} | {1e3 / frame_ms:.0f} | {splats_ms:.3f} | "
+              f"{alone_ms:.3f} | {frame_ms / alone_ms:.2f} | {max(differences):.2e} | {setup_s:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -83,6 +83,42 @@ def test_driver_equals_model_for_training_timesteps_and_pose_overrides(avatars, 
         assert (betas - model.betas_init).abs().max() > 1e-3 and (poses - model.pose_init).abs().max() > 1e-3
 
 
+@pytest.mark.parametrize("refine", [True, False])
+def test_real_time_frame_equals_the_per_pose_path(avatars, refine):
+    """`frame_graph=True`: every timestep decoded up front, the nearest timestep an argmin on the device; same
+    splats and timestep as the per-pose path (on the CPU the same function runs uncaptured), at every LOD, for a
+    180-degree root turn, an exact training pose (distance 0) and poses between two training poses."""
+    model = avatars[refine]
+    driver, plain = AvatarDriver(model, frame_graph=True), AvatarDriver(model)
+    rng = np.random.default_rng(5)
+    train = model.pose_init.numpy()
+    poses = [train[1].copy(), 0.5 * (train[0] + train[2]), rng.normal(scale=0.3, size=(55, 3))]
+    poses[2][0] = [np.pi, 0.0, 0.0]
+    for lod in range(model.num_levels):
+        for pose, transl in zip(poses, (None, [0.1, 0.2, -0.3], [0.0, 0.0, 0.0])):
+            splats, step = driver.posed_frame(lod, pose, transl)
+            assert int(step) == model.nearest_timestep(torch.as_tensor(pose))
+            for ours, theirs in zip(splats, plain.gaussians(lod, pose, transl)):
+                torch.testing.assert_close(ours, theirs)
+            for ours, theirs in zip(driver.gaussians(lod, pose, transl), splats):  # gaussians() takes this path
+                assert torch.equal(ours, theirs)
+    assert int(driver.posed_frame(0, train[1])[1]) == 1
+    assert driver.decoded_all(0).sh.shape[:2] == (model.num_timesteps, model.level_sizes[0])
+
+
+def test_real_time_frame_refuses_a_decoded_cache_over_its_budget(avatars):
+    model = avatars[False]
+    driver = AvatarDriver(model, frame_graph=True, decoded_budget_bytes=1000)
+    need = driver.decoded_all_bytes(2)
+    assert need == model.num_timesteps * model.level_sizes[2] * (3 + 4 + 3 + 1 + 3 * 4) * 4
+    with pytest.raises(ValueError, match=r"decoding all 3 timesteps at LOD 2 takes .* GiB, over decoded_budget_bytes"):
+        driver.posed_frame(2, model.pose_init[0].numpy())
+    # gaussians() falls back to the per-pose path over the budget
+    pose = model.pose_init[0].numpy()
+    for ours, theirs in zip(driver.gaussians(2, pose), AvatarDriver(model).gaussians(2, pose)):
+        assert torch.equal(ours, theirs)
+
+
 class _Counter:
     def __init__(self, module):
         self.calls = 0

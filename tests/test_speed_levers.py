@@ -197,6 +197,17 @@ def test_compiled_cg_iteration_matches_the_eager_one_and_the_dense_solve(rng):
     assert (error <= 1e-9 * np.linalg.norm(b.numpy(), axis=0)).all()
 
 
+def test_cg_graphs_switch_is_inert_off_cuda(rng):
+    """`precond.cg_graphs` only captures CUDA work (tests/gpu/test_cg_graphs.py compares it there): on the CPU the
+    solve is the launched one, bit for bit, and captures nothing."""
+    points = rng.normal(size=(50, 3))
+    lap = knn_laplacian(points, 5)
+    b = torch.tensor(rng.normal(size=(50, 2)))
+    plain = CGSystem(lap, 8.0, tol=1e-9, check_every=4)
+    graphed = CGSystem(lap, 8.0, tol=1e-9, check_every=4, graphs=True)
+    assert torch.equal(graphed.solve(b), plain.solve(b)) and not graphed._graphs
+
+
 # ---- 5, 6, 7: batched render and loss, fused Adam ----
 
 

@@ -183,3 +183,18 @@ def test_degenerate_frames_follow_the_surface():
     assert (cosine > 0.8).all()
     eye = torch.eye(3, dtype=torch.float64).expand(len(ids), 3, 3)
     torch.testing.assert_close(frames.transpose(1, 2) @ frames, eye, atol=1e-12, rtol=0)
+
+
+def test_sync_free_frames_equal_the_checked_ones():
+    """`sync_free` (the real-time frame graph) always computes the neighbourhood sums instead of asking the device
+    whether any triangle needs them: the frames are the same, bit for bit, on a regular mesh (where the checked
+    path skips the sums) and on one with degenerate triangles (where both use them)."""
+    rng = np.random.default_rng(3)
+    regular = torch.tensor(rng.normal(size=(1, 30, 3)))
+    faces = torch.tensor(np.stack([rng.permutation(30)[:3] for _ in range(20)]))
+    ids = torch.arange(20)
+    assert torch.equal(surface_frames(regular, faces, ids, sync_free=True), surface_frames(regular, faces, ids))
+    degenerate = regular.clone()
+    degenerate[0, faces[3, 1]] = degenerate[0, faces[3, 0]]  # a zero first edge
+    degenerate[0, faces[7, 2]] = 2 * degenerate[0, faces[7, 1]] - degenerate[0, faces[7, 0]]  # collinear corners
+    assert torch.equal(surface_frames(degenerate, faces, ids, sync_free=True), surface_frames(degenerate, faces, ids))

@@ -10,16 +10,31 @@ decoders (Eqs. 6-9). With the model fixed, the driver keeps
   `decoded_cache` most recent pairs: consecutive poses near one training pose skip the decoders.
 Per frame there remain the posed body, the transport of the level's anchors and Eqs. 10-11; the parts
 (`nearest_timestep`, `body`, `transport`, `decoded`, `splats`) are public so that they can be timed apart.
+
+The real-time path (`frame_graph=True`) goes further for pose-driven frames: the decoders' outputs of every
+training timestep at the level are computed once and held stacked on the device (when they fit in
+`decoded_budget_bytes`), so a frame is pose -> nearest timestep (an argmin on the device) -> body ->
+transport -> a gather of the decoded timestep -> Eqs. 10-11, with no host synchronisation. On CUDA that
+function is compiled and captured once per level as a CUDA graph: the frame's hundreds of small kernels
+(the 55-joint chain alone is 55 matrix products) then cost one launch.
 """
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import fields
 
 import numpy as np
 import torch
 
+from pig.body.rotation import axis_angle_to_matrix, geodesic_distance
+
 from .decoders import DecodedAnchors
 from .model import AvatarModel, Gaussians
+from .nearest_pose import BODY_JOINTS
+
+# BODY_JOINTS as a slice: a frame graph cannot capture the host-to-device copy of an index list.
+_BODY_SLICE = slice(BODY_JOINTS[0], BODY_JOINTS[-1] + 1)
+assert tuple(range(_BODY_SLICE.start, _BODY_SLICE.stop)) == BODY_JOINTS
 
 
 class AvatarDriver:
@@ -29,11 +44,16 @@ class AvatarDriver:
     work runs without gradients. Results equal `model.gaussians` up to float rounding.
     """
 
-    def __init__(self, model: AvatarModel, decoded_cache: int = 4, pose_cache: int = 4096):
+    def __init__(self, model: AvatarModel, decoded_cache: int = 4, pose_cache: int = 4096, frame_graph: bool = False,
+                 decoded_budget_bytes: int = 8 << 30):
         if decoded_cache < 0 or pose_cache < 0:
             raise ValueError(f"AvatarDriver: cache sizes must be >= 0, got decoded_cache={decoded_cache}, pose_cache={pose_cache}")
         self.model = model.eval()
         self.decoded_cache, self.pose_cache = decoded_cache, pose_cache
+        self.frame_graph, self.decoded_budget_bytes = frame_graph, decoded_budget_bytes
+        self._decoded_all: dict[int, DecodedAnchors] = {}  # lod -> outputs (T, n, ...) of every training timestep
+        self._frames: dict[tuple[int, bool], "_FrameGraph"] = {}
+        self._train_rotations: torch.Tensor | None = None  # (T, 21, 3, 3) body-joint rotations of the training poses
         self._anchors: torch.Tensor | None = None
         self._features: dict[int, torch.Tensor] = {}  # lod -> z (n, d)
         self._z_mean: torch.Tensor | None = None
@@ -133,6 +153,68 @@ class AvatarDriver:
     def splats(centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
         return AvatarModel.splats(centres, rotation, decoded)
 
+    # ---- the real-time path: every timestep decoded, one function per frame ----
+
+    def decoded_all_bytes(self, lod: int) -> int:
+        """Device memory that the decoded outputs of every training timestep at `lod` take."""
+        model = self.model
+        per_anchor = 3 + 4 + 3 + 1 + 3 * (model.cfg.sh_degree + 1) ** 2
+        return model.num_timesteps * model.level_sizes[lod] * per_anchor * model.x_init.element_size()
+
+    @torch.no_grad()
+    def decoded_all(self, lod: int, chunk: int = 8) -> DecodedAnchors:
+        """Decoder outputs (T, n, ...) of the level's anchors at every training timestep, computed once."""
+        self._check_lod(lod)
+        if lod not in self._decoded_all:
+            steps = torch.arange(self.model.num_timesteps, device=self.device)
+            parts = [self.model.decode(self.features(lod), steps[i:i + chunk], lod) for i in range(0, len(steps), chunk)]
+            self._decoded_all[lod] = DecodedAnchors(*(torch.cat([getattr(p, f.name) for p in parts]).float()
+                                                      for f in fields(DecodedAnchors)))
+        return self._decoded_all[lod]
+
+    def frame_graph_fits(self, lod: int) -> bool:
+        return self.decoded_all_bytes(lod) <= self.decoded_budget_bytes
+
+    def _frame(self, lod: int, pose: torch.Tensor, transl: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+        """One pose-driven frame on the device: (means, quats, scales, opacities, sh) and the timestep (1,).
+        Every operation is a device kernel with static shapes, so the function can be captured as a graph."""
+        model = self.model
+        train_rotations, decoded_all = self._train_rotations, self._decoded_all[lod]
+        query = axis_angle_to_matrix(pose[_BODY_SLICE])  # (21, 3, 3)
+        step = geodesic_distance(query[None], train_rotations).sum(-1).argmin()[None]  # ties -> earliest
+        betas, _ = self.refined()
+        translation = model.transl[step] if transl is None else transl
+        vertices = model.body_model(pose[None], betas, model.expression[step], translation).vertices
+        centres, rotation = model.transport(self.anchors(), vertices, lod, sync_free=True)
+        decoded = DecodedAnchors(*(getattr(decoded_all, f.name)[step] for f in fields(DecodedAnchors)))
+        g = self.splats(centres, rotation, decoded)
+        return g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], step
+
+    @torch.no_grad()
+    def posed_frame(self, lod: int, pose, transl=None) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
+        """The real-time path: ((means, quats, scales, opacities, sh), timestep (1,)) for a (55, 3) pose, equal to
+        `gaussians(lod, pose, transl)`. On CUDA the tensors are a graph's outputs, overwritten by the next call
+        at this level: consume (render) or clone them first."""
+        self._check_lod(lod)
+        if not self.frame_graph_fits(lod):
+            raise ValueError(f"AvatarDriver: decoding all {self.model.num_timesteps} timesteps at LOD {lod} takes "
+                             f"{self.decoded_all_bytes(lod) / 2**30:.2f} GiB, over decoded_budget_bytes "
+                             f"({self.decoded_budget_bytes / 2**30:.2f} GiB); use gaussians() or raise the budget")
+        query = self._pose(pose)
+        translation = None if transl is None else self._transl(transl)
+        if self._train_rotations is None:
+            self._train_rotations = axis_angle_to_matrix(self.model.pose_init[:, _BODY_SLICE])
+        self.refined()  # fills the per-avatar caches outside the graph: the frame only reads them
+        self.decoded_all(lod)
+        if query.device.type != "cuda":
+            *splats, step = self._frame(lod, query, translation)
+            return tuple(splats), step
+        key = (lod, translation is not None)
+        if key not in self._frames:
+            self._frames[key] = _FrameGraph(self._frame, lod, query, translation)
+        *splats, step = self._frames[key].run(query, translation)
+        return tuple(splats), step
+
     def gaussians(self, lod: int, pose=None, transl=None, timestep: int | None = None) -> tuple[torch.Tensor, ...]:
         """(means, quats, scales, opacities, sh) of one frame, as `AvatarModel.gaussians` returns them.
 
@@ -144,6 +226,8 @@ class AvatarDriver:
         if timestep is None:
             if pose is None:
                 raise ValueError("AvatarDriver.gaussians needs a timestep, a pose, or both")
+            if self.frame_graph and self.frame_graph_fits(lod):
+                return self.posed_frame(lod, pose, transl)[0]
             timestep = self.nearest_timestep(pose)
         if not 0 <= int(timestep) < self.model.num_timesteps:
             raise ValueError(f"timestep must lie in 0..{self.model.num_timesteps - 1}, got {timestep}")
@@ -156,6 +240,8 @@ class AvatarDriver:
         """Drop what is cached per pose (nearest timesteps, decoded timesteps); per-LOD work stays."""
         self._nearest.clear()
         self._decoded.clear()
+        self._decoded_all.clear()
+        self._frames.clear()
 
     # ---- input checks ----
 
@@ -178,3 +264,30 @@ class AvatarDriver:
         if not bool(torch.isfinite(value).all()):
             raise ValueError("AvatarDriver: the translation holds NaN or infinite values")
         return value.reshape(1, 3).to(dtype=self.model.transl.dtype, device=self.device)
+
+
+class _FrameGraph:
+    """A compiled frame function captured as a CUDA graph on static pose / translation buffers."""
+
+    def __init__(self, frame, lod: int, pose: torch.Tensor, transl: torch.Tensor | None):
+        self.pose = pose.clone()
+        self.transl = None if transl is None else transl.clone()
+        compiled = torch.compile(frame, dynamic=False)
+        self._run = lambda: compiled(lod, self.pose, self.transl)
+        # Compile and warm the allocator on a side stream before capturing (CUDA graph rules).
+        side = torch.cuda.Stream(pose.device)
+        side.wait_stream(torch.cuda.current_stream(pose.device))
+        with torch.cuda.stream(side):
+            for _ in range(2):
+                self._run()
+        torch.cuda.current_stream(pose.device).wait_stream(side)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.outputs = self._run()
+
+    def run(self, pose: torch.Tensor, transl: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
+        self.pose.copy_(pose)
+        if self.transl is not None:
+            self.transl.copy_(transl)
+        self.graph.replay()
+        return self.outputs

@@ -125,13 +125,15 @@ class AvatarModel(nn.Module):
         z_all = self.grid(x if refine else x[:n])
         return z_all[:n], z_all.mean(dim=0) if refine else None
 
-    def transport(self, x: torch.Tensor, vertices: torch.Tensor, lod: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def transport(self, x: torch.Tensor, vertices: torch.Tensor, lod: int,
+                  sync_free: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Eqs. 2-3 for the level's anchors: posed centres (K, n, 3) and rotations (K, n, 3, 3) on the
-        posed body `vertices` (K, V, 3); `x` (N, 3) are the canonical anchors."""
+        posed body `vertices` (K, V, 3); `x` (N, 3) are the canonical anchors (`sync_free`: see surface_frames)."""
         n = self.level_sizes[lod]
         face_ids = self.face_ids[:n]
         faces = self.body_model.faces
-        rotation = transport_rotation(surface_frames(vertices, faces, face_ids), self.canonical_frames[:n])
+        frames = surface_frames(vertices, faces, face_ids, sync_free)
+        rotation = transport_rotation(frames, self.canonical_frames[:n])
         posed_init = barycentric_points(vertices, faces, face_ids, self.bary[:n])
         return transport_points(x[:n], self.x_init[:n], posed_init, rotation), rotation
 

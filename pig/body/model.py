@@ -108,6 +108,9 @@ class BodyModel(nn.Module):
         self.register_buffer("j_regressor", torch.from_numpy(j_regressor))
         self.register_buffer("weights", torch.from_numpy(weights))
         self.parents = parents.tolist()
+        # A device tensor, not a list: indexing with a list copies it to the device on every call, which a
+        # CUDA graph cannot capture (pig.avatar.driver's frame graph).
+        self.register_buffer("parent_index", torch.from_numpy(parents[1:].copy()), persistent=False)
         hands_mean = np.zeros((NUM_JOINTS, 3))
         for key, part in zip(HAND_MEAN_KEYS, (LEFT_HAND, RIGHT_HAND)):
             if key in arrays:
@@ -167,7 +170,7 @@ class BodyModel(nn.Module):
 
         # Rigid chain: G_j = G_parent [R_j | J_j - J_parent].
         rel_joints = joints_rest.clone()
-        rel_joints[:, 1:] = joints_rest[:, 1:] - joints_rest[:, self.parents[1:]]
+        rel_joints[:, 1:] = joints_rest[:, 1:] - joints_rest[:, self.parent_index]
         local = torch.zeros(batch, NUM_JOINTS, 4, 4, dtype=dtype, device=device)
         local[..., :3, :3] = rotations
         local[..., :3, 3] = rel_joints

@@ -40,7 +40,7 @@ def _neighbourhood_sums(vertices: torch.Tensor, faces: torch.Tensor, face_ids: t
     return sums[..., :3], sums[..., 3:]
 
 
-def surface_frames(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.Tensor) -> torch.Tensor:
+def surface_frames(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.Tensor, sync_free: bool = False) -> torch.Tensor:
     """Right-handed orthonormal frames [t | b | n] (columns) of the attachment triangles.
 
     vertices (B, V, 3) -> (B, N, 3, 3). A regular triangle: t along its first edge, n its normal, b = n x t.
@@ -55,7 +55,8 @@ def surface_frames(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.
       made perpendicular to t.
     Only where that neighbourhood has no area, or no edge at all, do world axes fill in. Every frame is
     finite with det +1, and has finite gradients. The neighbourhood sums (over the whole mesh) are
-    computed only when some attachment triangle is degenerate.
+    computed only when some attachment triangle is degenerate; `sync_free` computes them always, so that the
+    device is never asked which (the same frames; a CUDA graph cannot capture that question).
     """
     dtype = vertices.dtype
     rel = torch.finfo(dtype).eps ** 0.5
@@ -70,7 +71,7 @@ def surface_frames(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.
     e1_len, e2_len = e1.norm(dim=-1, keepdim=True).detach(), e2.norm(dim=-1, keepdim=True).detach()
     edges_ok = (e1_len > zero_edge) & (e2_len > zero_edge)
     sine_floor = torch.where(edges_ok, rel * e1_len * e2_len, torch.full_like(e1_len, float("inf")))
-    if bool((area_normal.norm(dim=-1, keepdim=True) > sine_floor).all()):
+    if not sync_free and bool((area_normal.norm(dim=-1, keepdim=True) > sine_floor).all()):
         hood_normal, hood_first = torch.zeros_like(e1), torch.zeros_like(e1)  # never selected below
     else:
         hood_normal, hood_first = _neighbourhood_sums(vertices, faces, face_ids)

@@ -30,7 +30,9 @@ plus the rounding of the returned dtype. It gives up after max_iter iterations: 
 the residual reached. At large lambda CG needs about as many iterations as L's own condition number
 asks (100k anchors, tol 1e-5: 58 at lambda = 8, ~1500 at 1e6, ~1800 at 1e8), and float64 rounding of
 A x keeps the reachable relative residual above roughly 1e-15 lambda (1e-7 to 1e-6 at lambda = 1e8; a
-smaller tol ends in the warning). Float64 costs 1.1-1.3x the float32 solve time (100k anchors,
+smaller tol ends in the warning). With `graphs` on a CUDA device, each block of check_every iterations (and
+the residual the check reads) is captured once per right-hand-side shape as a CUDA graph and replayed: the
+iterations are a few tiny kernels each, so launching them from Python cost more than running them. Float64 costs 1.1-1.3x the float32 solve time (100k anchors,
 lambda = 8, one CPU thread, same process).
 """
 from __future__ import annotations
@@ -128,11 +130,47 @@ def _cg_iteration(x, r, p, rz, columns, values, inv_diag, lam: float):
     return x, r, z + beta * p, rz_new
 
 
+class _CGBlockGraph:
+    """A CUDA graph of `steps` CG iterations on static (x, r, p, rz) buffers, ending in the relative residual
+    max |r| / |b| that the host check reads; captured once for one right-hand-side shape."""
+
+    def __init__(self, iterate, shape: tuple[int, int], steps: int, rows, inv_diag: torch.Tensor, lam: float):
+        device = inv_diag.device
+        self.x, self.r, self.p = (torch.zeros(shape, dtype=torch.float64, device=device) for _ in range(3))
+        self.rz = torch.zeros(shape[1], dtype=torch.float64, device=device)
+        self.norm = torch.ones(shape[1], dtype=torch.float64, device=device)
+        self.residual = torch.zeros((), dtype=torch.float64, device=device)
+        self._block = lambda: self._run(iterate, steps, rows, inv_diag, lam)
+        # Capture needs its kernels compiled and its allocator warm: run the block once on a side stream first.
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            self._block()
+        torch.cuda.current_stream(device).wait_stream(side)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self._block()
+
+    def _run(self, iterate, steps, rows, inv_diag, lam) -> None:
+        x, r, p, rz = self.x, self.r, self.p, self.rz
+        for _ in range(steps):
+            x, r, p, rz = iterate(x, r, p, rz, *rows, inv_diag, lam)
+        for buffer, value in ((self.x, x), (self.r, r), (self.p, p), (self.rz, rz)):
+            buffer.copy_(value)
+        self.residual.copy_((r.norm(dim=0) / self.norm).max())
+
+    def run(self, x, r, p, rz, norm) -> tuple[torch.Tensor, ...]:
+        for buffer, value in ((self.x, x), (self.r, r), (self.p, p), (self.rz, rz), (self.norm, norm)):
+            buffer.copy_(value)
+        self.graph.replay()
+        return self.x, self.r, self.p, self.rz, self.residual
+
+
 class CGSystem(_KnnSystem):
     """A = I + lambda L solved by warm-started Jacobi-preconditioned CG in float64 (see module docstring)."""
 
     def __init__(self, laplacian: sp.spmatrix, lam: float, tol: float = 1e-5, max_iter: int = 200, check_every: int = 1,
-                 compiled: bool = False):
+                 compiled: bool = False, graphs: bool = False):
         if not tol > 0 or max_iter < 1 or check_every < 1:
             raise ValueError(f"CGSystem: expected tol > 0, max_iter >= 1 and check_every >= 1, found tol={tol}, "
                              f"max_iter={max_iter}, check_every={check_every}")
@@ -147,6 +185,8 @@ class CGSystem(_KnnSystem):
         self._warm: dict[str | None, torch.Tensor] = {}
         self._rows: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
         self._iterate = torch.compile(_cg_iteration, dynamic=False) if compiled else _cg_iteration
+        self.graphs = graphs
+        self._graphs: dict[tuple, _CGBlockGraph] = {}
 
     def _rows_on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         """L's rows as a padded table: column indices (N, D) and values (N, D), padding pointing at the row with 0."""
@@ -161,6 +201,16 @@ class CGSystem(_KnnSystem):
             columns[rows, slots], values[rows, slots] = lap.indices, lap.data
             self._rows[device] = (torch.from_numpy(columns).to(device), torch.from_numpy(values).to(device))
         return self._rows[device]
+
+    def _block_graph(self, rhs: torch.Tensor, steps: int, inv_diag: torch.Tensor) -> _CGBlockGraph | None:
+        """The captured block of `steps` iterations for this right-hand side's shape (CUDA with `graphs` only)."""
+        if not (self.graphs and rhs.is_cuda):
+            return None
+        key = (rhs.device, tuple(rhs.shape), steps)
+        if key not in self._graphs:
+            self._graphs[key] = _CGBlockGraph(self._iterate, tuple(rhs.shape), steps, self._rows_on(rhs.device), inv_diag,
+                                              self.lam)
+        return self._graphs[key]
 
     def reset(self) -> None:
         """Forget the warm starts (the next solves start from zero)."""
@@ -191,12 +241,18 @@ class CGSystem(_KnnSystem):
             rz = (r * z).sum(dim=0)
             while iterations < self.max_iter:
                 steps = min(self.check_every, self.max_iter - iterations)
-                for _ in range(steps):
-                    x, r, p, rz = self._iterate(x, r, p, rz, *self._rows_on(b.device), inv_diag, self.lam)
+                graph = self._block_graph(rhs, steps, inv_diag)
+                if graph is not None:
+                    x, r, p, rz, block_residual = graph.run(x, r, p, rz, safe_norm)
+                else:
+                    for _ in range(steps):
+                        x, r, p, rz = self._iterate(x, r, p, rz, *self._rows_on(b.device), inv_diag, self.lam)
+                    block_residual = (r.norm(dim=0) / safe_norm).max()
                 iterations += steps
                 # Each check waits for the device; a block of iterations between checks keeps its queue full.
-                if (r.norm(dim=0) / safe_norm).max().item() <= self.tol:
+                if block_residual.item() <= self.tol:
                     break
+            x = x.clone()  # a graph's buffer is overwritten by the next solve
         self.last_iterations = iterations
         self.last_residual = float(residual)
         if self.last_residual > self.tol:

@@ -66,6 +66,7 @@ class PrecondConfig:
     cg_max_iter: int = 200
     cg_check_every: int = 1  # CG tests its residual (a host synchronisation) every this many iterations
     cg_compile: bool = False  # CG iterations compiled with torch.compile (speed lever, pig/field/knn_solve.py)
+    cg_graphs: bool = False  # on CUDA, each block of cg_check_every iterations replayed as one CUDA graph (speed lever)
 
     def grid_lrs(self, levels: int) -> list[float]:
         return [self.grid_lr * self.grid_lr_growth**g for g in range(levels)]
@@ -166,7 +167,7 @@ def knn_system(points: torch.Tensor, cfg: PrecondConfig) -> FactorizedSystem | C
     if cfg.knn_solver == "factorized":
         return FactorizedSystem(laplacian, cfg.anchor_lambda)
     return CGSystem(laplacian, cfg.anchor_lambda, tol=cfg.cg_tol, max_iter=cfg.cg_max_iter, check_every=cfg.cg_check_every,
-                    compiled=cfg.cg_compile)
+                    compiled=cfg.cg_compile, graphs=cfg.cg_graphs)
 
 
 def precondition_anchors(points: torch.Tensor, cfg: PrecondConfig) -> PreconditionedTensor:
