@@ -129,9 +129,8 @@ class AvatarDriver:
                 self._decoded.popitem(last=False)
         return out
 
-    @staticmethod
-    def splats(centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
-        return AvatarModel.splats(centres, rotation, decoded)
+    def splats(self, centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
+        return self.model.splats(centres, rotation, decoded)
 
     def gaussians(self, lod: int, pose=None, transl=None, timestep: int | None = None) -> tuple[torch.Tensor, ...]:
         """(means, quats, scales, opacities, sh) of one frame, as `AvatarModel.gaussians` returns them.

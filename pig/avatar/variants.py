@@ -1,7 +1,8 @@
 """Method variants: a profile's `variants:` section maps a name to per-section config overrides.
 
-Selects the full method (`pig`) and the ablations of Section 4.5 (`no_precond`, `fixed_anchors`,
-`no_offsets`, `single_mlp`, body-parameter noise `noise_<sigma>`); no paper equation.
+Selects the full method (`pig`), the ablations of Section 4.5 (`no_precond`, `fixed_anchors`, `no_offsets`,
+`single_mlp`, body-parameter noise `noise_<sigma>`), the LOD table's single-level model (`lod_1of1`), offsets in
+the anchor's frame (`local_offsets`) and a baseline bound to the template (`template_bound`); no paper equation.
 """
 from __future__ import annotations
 
