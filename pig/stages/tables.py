@@ -262,7 +262,7 @@ def training_plot(logs: dict[str, dict[Path, pd.DataFrame]], path: Path, title: 
             subject = Path(file).parts[-3]
             ax.plot(log["wall_s"], log["heldout_psnr"], marker="o", markersize=3, color=colours(index % colours.N),
                     linestyle=styles[subjects.index(subject) % len(styles)], label=f"{variant} ({subject})")
-    ax.set_xlabel("training wall time [s]")
+    ax.set_xlabel("fit wall time, held-out evaluations included [s]")
     ax.set_ylabel("held-out novel-view PSNR [dB]")
     ax.set_title(title)
     ax.grid(alpha=0.3)
