@@ -113,8 +113,9 @@ def test_real_captures_give_no_region_columns_and_no_regions_table(tmp_path):
 def test_region_metrics_in_some_summaries_only_are_refused_by_name(tmp_path):
     paths = _summaries(tmp_path, {"pig": 1, "template_bound": 1})
     stale = _summary(tmp_path, "s1", "template_bound", "novel_pose", 0, regions=False)
-    with pytest.raises(ValueError, match=rf"^{re.escape(str(stale))}: summary lacks the ground-truth region metrics \(psnr_garment, .*\) that "
-                                         rf".*/metrics/novel_view_lod0\.json has: written by an older evaluate stage"):
+    lacks = (rf"^{re.escape(str(stale))}: summary lacks the ground-truth region metrics \(psnr_garment, .*\) that "
+             r".*/metrics/novel_view_lod0\.json has: written by an older evaluate stage")
+    with pytest.raises(ValueError, match=lacks):
         make_table("regions", "synthetic", paths, ["pig", "template_bound"], tmp_path / "tables")
     partial = _summary(tmp_path, "s1", "template_bound", "novel_pose", 0)  # all keys, then drop two
     data = json.loads(partial.read_text())

@@ -61,7 +61,8 @@ def _posed_template(model, steps: torch.Tensor, lod: int, poses=None) -> torch.T
 def _surface_points(model, steps: torch.Tensor, lod: int, poses=None) -> np.ndarray:
     """The level's attachment points on the posed template, by barycentric sums in float64 numpy."""
     n = model.level_sizes[lod]
-    corners = _posed_template(model, steps, lod, poses).double().numpy()[:, model.body_model.faces.numpy()[model.face_ids[:n].numpy()]]  # (K, n, 3, 3)
+    triangles = model.body_model.faces.numpy()[model.face_ids[:n].numpy()]
+    corners = _posed_template(model, steps, lod, poses).double().numpy()[:, triangles]  # (K, n, 3, 3)
     return np.einsum("nc,kncx->knx", model.bary[:n].double().numpy(), corners)
 
 
