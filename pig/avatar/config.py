@@ -5,6 +5,7 @@ Defaults are the paper's (Section 3.6); the latent grid is configured in section
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass
@@ -17,6 +18,9 @@ class AvatarConfig:
     hidden_width: int = 512
     single_mlp: bool = False  # ablation: one MLP decodes colour and shape together
     offsets: bool = True  # ablation `no_offsets`: no per-timestep position residual (Eq. 10)
+    # Axes of the decoded position residual d mu (Eq. 10 leaves them open): `world`, or `local`, the anchor's
+    # transported frame (d mu turns with the surface: R d mu, R of Eq. 3), variant `local_offsets`.
+    offset_frame: Literal["world", "local"] = "world"
     learn_anchors: bool = True  # ablation `fixed_anchors`: canonical anchors stay at x_init
     refine_hidden_layers: int = 3  # body refinement MLP (Eqs. 12-14)
     refine_hidden_width: int = 32
@@ -33,5 +37,7 @@ class AvatarConfig:
     def __post_init__(self):
         if self.sh_degree not in (0, 1, 2, 3):
             raise ValueError(f"avatar.sh_degree must be 0..3, got {self.sh_degree}")
+        if self.offset_frame not in ("world", "local"):
+            raise ValueError(f"avatar.offset_frame must be 'world' or 'local', got {self.offset_frame!r}")
         if self.levels < 1 or self.num_anchors < 2 ** (self.levels - 1):
             raise ValueError(f"avatar: {self.num_anchors} anchors cannot form {self.levels} nested levels")

@@ -32,7 +32,7 @@ def mlp(inputs: int, width: int, layers: int, outputs: int, output_gain: float) 
 
 @dataclass
 class DecodedAnchors:
-    offset: torch.Tensor  # (..., 3) position residual in posed space (Eq. 10)
+    offset: torch.Tensor  # (..., 3) position residual (Eq. 10), in world axes or the anchor's frame (avatar.offset_frame)
     rotation: torch.Tensor  # (..., 4) unit quaternion residual, wxyz (Eq. 11)
     scale: torch.Tensor  # (..., 3) positive
     opacity: torch.Tensor  # (...,) in (0, 1)

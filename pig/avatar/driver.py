@@ -149,9 +149,8 @@ class AvatarDriver:
                 self._decoded.popitem(last=False)
         return out
 
-    @staticmethod
-    def splats(centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
-        return AvatarModel.splats(centres, rotation, decoded)
+    def splats(self, centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
+        return self.model.splats(centres, rotation, decoded)
 
     # ---- the real-time path: every timestep decoded, one function per frame ----
 

@@ -145,11 +145,16 @@ class AvatarModel(nn.Module):
         y = torch.cat([z.expand(count, n, -1), gamma[:, None].expand(count, n, -1), level], dim=-1)
         return self.decoder(y, self.log_scale_prior[lod])
 
-    @staticmethod
-    def splats(centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
-        """Eqs. 10-11: mu = x(theta) + d mu, q = q(R) d q, with the decoded scale, opacity and SH."""
+    def splats(self, centres: torch.Tensor, rotation: torch.Tensor, decoded: DecodedAnchors) -> Gaussians:
+        """Eqs. 10-11: mu = x(theta) + d mu, q = q(R) d q, with the decoded scale, opacity and SH.
+
+        With `offset_frame: local` the decoded d mu is in the anchor's frame and turns with it: mu = x(theta) + R d mu.
+        """
+        offset = decoded.offset
+        if self.cfg.offset_frame == "local":
+            offset = torch.einsum("...ij,...j->...i", rotation.to(offset.dtype), offset)
         quats = quaternion_multiply(matrix_to_quaternion(rotation), decoded.rotation)
-        return Gaussians(means=centres + decoded.offset, quats=quats, scales=decoded.scale, opacities=decoded.opacity,
+        return Gaussians(means=centres + offset, quats=quats, scales=decoded.scale, opacities=decoded.opacity,
                          sh=decoded.sh)
 
     def timestep_of_frame(self, frame_id: int) -> int:

@@ -1,7 +1,8 @@
 """Method variants: a profile's `variants:` section maps a name to per-section config overrides.
 
-Selects the full method (`pig`) and the ablations of Section 4.5 (`no_precond`, `fixed_anchors`,
-`no_offsets`, `single_mlp`, body-parameter noise `noise_<sigma>`); no paper equation.
+Selects the full method (`pig`), the ablations of Section 4.5 (`no_precond`, `fixed_anchors`, `no_offsets`,
+`single_mlp`, body-parameter noise `noise_<sigma>`), the LOD table's single-level model (`lod_1of1`), offsets in
+the anchor's frame (`local_offsets`) and a baseline bound to the template (`template_bound`); no paper equation.
 """
 from __future__ import annotations
 
@@ -24,3 +25,26 @@ def variant_overrides(profile: dict[str, Any], name: str) -> dict[str, dict[str,
     if not isinstance(overrides, dict) or not all(isinstance(v, dict) for v in overrides.values()):
         raise ConfigError(f"{where}.{name}: expected a mapping of section -> {{key: value}}, found {overrides!r}")
     return {section: dict(values) for section, values in overrides.items()}
+
+
+def variant_kind(profile: dict[str, Any], name: str) -> str:
+    """`noise` (the variant sets fit.sigma_body), `lod` (it sets avatar.levels) or `structural` (any other, `pig`
+    included): which of the paper's tables the variant belongs to besides the main one."""
+    overrides = variant_overrides(profile, name)
+    if "sigma_body" in overrides.get("fit", {}):
+        return "noise"
+    if "levels" in overrides.get("avatar", {}):
+        return "lod"
+    return "structural"
+
+
+def table_variants(profile: dict[str, Any], names: list[str], table: str) -> list[str]:
+    """The variants of `names` in a table, in their order: all of them in `main` and `regions`; the structural
+    ones in `ablation`; `pig` (sigma 0) and the noise variants in `noise`."""
+    if table in ("main", "regions"):
+        return list(names)
+    if table == "ablation":
+        return [name for name in names if variant_kind(profile, name) == "structural"]
+    if table == "noise":
+        return [name for name in names if name == "pig" or variant_kind(profile, name) == "noise"]
+    raise ConfigError(f"unknown table {table!r}; expected main, ablation, noise or regions")

@@ -1,7 +1,16 @@
 """Tables stage: the paper's result tables from the evaluate stage's summaries, as CSV and Markdown, plus a plot.
 
-Layouts of Section 4: Tables 1-2 (variants x novel-view / novel-pose PSNR, SSIM, LPIPS, FID, splats),
-the LOD table (splats, metrics, model MB, FPS per level), and held-out PSNR against training time.
+Layouts of Section 4 (`--table`):
+- `main`: Tables 1-2 (variants x novel-view / novel-pose PSNR, SSIM, LPIPS, FID, splats), `{dataset}.csv`; the
+  LOD table (splats, metrics, model MB, FPS per level; a single-level variant such as `lod_1of1` is its `1/1`
+  row), `{dataset}_lod.csv`; held-out PSNR against training wall time of every variant, `{dataset}_training.png`.
+- `ablation`: the structural ablation (Table 4) in the main table's layout, `{dataset}_ablation.csv`.
+- `noise`: robustness to body-parameter noise (Table 5): the main layout per sigma_body (radians on the pose,
+  and in degrees), `{dataset}_noise.csv`; sigma comes from the profile the variants were fitted with.
+- `regions`: the ground-truth metrics of synthetic captures per variant and split, `{dataset}_regions.csv`.
+Summaries of captures with ground truth carry REGION_KEYS (PSNR/SSIM per region, geometry error and
+correspondence drift in mm); the main-layout tables then gain a `{split}_{key}` column each, and leave them out
+for real captures, which have none. The regions table is refused when no summary has them.
 The LPIPS columns carry their backbone in the header (`novel_view_lpips_vgg`, `lpips_alex`, ...). Each FID
 column has two numeric companions, `..._fid_images` (images per set; the smallest over the subjects
 averaged) and `..._fid_biased` (1 when a set had fewer than the evaluate stage's `fid_min_images`); the
@@ -27,11 +36,18 @@ SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "fid")
 FID_COUNT = ("fid_images", "fid_min_images")
 BLANK_ROW = "blank (black image)"
+# Ground-truth metrics of the evaluate summaries of synthetic captures (absent for real captures).
+REGION_KEYS = ("psnr_garment", "psnr_body", "psnr_background", "ssim_garment", "ssim_body", "ssim_background",
+               "accuracy_mm_garment", "accuracy_mm_body", "completeness_mm_garment", "completeness_mm_body",
+               "drift_mm", "drift_mm_last")
+TABLES = ("main", "ablation", "noise", "regions")
 
 
 def read_summaries(paths: list[Path]) -> pd.DataFrame:
-    """One row per summary file results/{dataset}/{subject}/{variant}/metrics/{split}_lod{l}.json."""
-    rows = []
+    """One row per summary file results/{dataset}/{subject}/{variant}/metrics/{split}_lod{l}.json.
+
+    Either every summary has all REGION_KEYS or none has any: a table never mixes scored and unscored rows."""
+    rows, with_regions, without_regions = [], None, None
     for path in paths:
         path = Path(path)
         if path.parent.name != "metrics" or len(path.parts) < 4:
@@ -43,10 +59,27 @@ def read_summaries(paths: list[Path]) -> pd.DataFrame:
         if not math.isnan(summary["fid"]) and not set(FID_COUNT) <= set(summary):
             raise ValueError(f"{path}: summary has a FID but not the image count it was computed over (no "
                              f"{' / '.join(FID_COUNT)}: written by an older evaluate stage); re-run evaluate")
+        regions = set(REGION_KEYS) & set(summary)
+        if regions and regions != set(REGION_KEYS):
+            raise ValueError(f"{path}: summary has only some ground-truth region metrics, lacks "
+                             f"{sorted(set(REGION_KEYS) - regions)}; re-run evaluate")
+        if regions:
+            with_regions = with_regions or path
+        else:
+            without_regions = without_regions or path
         rows.append({"subject": path.parts[-4], "variant": path.parts[-3], **summary})
     if not rows:
         raise ValueError("no evaluate summaries given")
+    if with_regions and without_regions:
+        raise ValueError(f"{without_regions}: summary lacks the ground-truth region metrics ({', '.join(REGION_KEYS)}) "
+                         f"that {with_regions} has: written by an older evaluate stage, or a capture without ground "
+                         "truth among captures with it; re-run evaluate")
     return pd.DataFrame(rows)
+
+
+def has_regions(summaries: pd.DataFrame) -> bool:
+    """Whether the summaries carry the ground-truth region metrics (all of them do, or none; `read_summaries`)."""
+    return REGION_KEYS[0] in summaries
 
 
 def _notes(frame: pd.DataFrame) -> str:
@@ -83,9 +116,11 @@ def lpips_column(summaries: pd.DataFrame) -> str:
     return f"lpips_{nets.iloc[0]}"
 
 
-def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
-    """Tables 1-2: per variant (finest LOD, mean over subjects) novel-view and novel-pose metrics and splats."""
+def main_table(summaries: pd.DataFrame, variants: list[str], blank: bool = True) -> pd.DataFrame:
+    """Tables 1-2: per variant (finest LOD, mean over subjects) novel-view and novel-pose metrics and splats,
+    then `{split}_{key}` per REGION_KEYS where the summaries have them; with `blank`, the black-image row."""
     lpips = lpips_column(summaries)
+    regions = REGION_KEYS if has_regions(summaries) else ()
     finest = summaries[summaries["lod"] == summaries.groupby("variant")["lod"].transform("max")]
     rows = []
     for variant in variants:
@@ -99,18 +134,56 @@ def main_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
                 row[f"{split}_{metric}"] = rows_split[metric].mean() if not rows_split.empty else math.nan
             row[f"{split}_fid_images"], row[f"{split}_fid_biased"] = fid_count(rows_split)
         row["splats"] = int(part["splats"].max())
+        for split in SPLITS:
+            rows_split = part[part["split"] == split]
+            row.update({f"{split}_{key}": rows_split[key].mean() if not rows_split.empty else math.nan for key in regions})
         row["notes"] = _notes(part)
         rows.append(row)
-    # A black image scored against the masked ground truth: the floor every method must clear.
-    blank = {"variant": BLANK_ROW}
+    if blank:
+        rows.append(_blank_row(finest, regions))
+    return pd.DataFrame(rows).rename(columns={f"{split}_lpips": f"{split}_{lpips}" for split in SPLITS})
+
+
+def _blank_row(finest: pd.DataFrame, regions: tuple[str, ...]) -> dict:
+    """A black image scored against the masked ground truth: the floor every method must clear."""
+    row = {"variant": BLANK_ROW}
     for split in SPLITS:
         rows_split = finest[finest["split"] == split]
-        blank.update({f"{split}_psnr": rows_split["psnr_blank"].mean(), f"{split}_ssim": rows_split["ssim_blank"].mean(),
-                      f"{split}_lpips": math.nan, f"{split}_fid": math.nan, f"{split}_fid_images": math.nan,
-                      f"{split}_fid_biased": math.nan})
-    blank.update(splats=0, notes=f"{BLANK_ROW}: an all-black render scored like the methods (PSNR and SSIM only)")
-    rows.append(blank)
-    return pd.DataFrame(rows).rename(columns={f"{split}_lpips": f"{split}_{lpips}" for split in SPLITS})
+        row.update({f"{split}_psnr": rows_split["psnr_blank"].mean(), f"{split}_ssim": rows_split["ssim_blank"].mean(),
+                    f"{split}_lpips": math.nan, f"{split}_fid": math.nan, f"{split}_fid_images": math.nan,
+                    f"{split}_fid_biased": math.nan})
+    row["splats"] = 0
+    row.update({f"{split}_{key}": math.nan for split in SPLITS for key in regions})
+    row["notes"] = f"{BLANK_ROW}: an all-black render scored like the methods (PSNR and SSIM only)"
+    return row
+
+
+def noise_table(summaries: pd.DataFrame, sigmas: dict[str, float]) -> pd.DataFrame:
+    """Table 5: the main layout per variant with its body-parameter noise `sigmas` {variant: sigma_body} (radians
+    on the pose angles; `sigma_body_deg` in degrees), rows by increasing sigma."""
+    order = sorted(sigmas, key=lambda variant: sigmas[variant])
+    table = main_table(summaries, order, blank=False)
+    table.insert(1, "sigma_body", [sigmas[v] for v in order])
+    table.insert(2, "sigma_body_deg", [math.degrees(sigmas[v]) for v in order])
+    return table
+
+
+def regions_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
+    """Per variant and split (finest LOD, mean over subjects) the ground-truth metrics REGION_KEYS."""
+    if not has_regions(summaries):
+        raise ValueError(f"no summary holds the ground-truth region metrics ({', '.join(REGION_KEYS)}): only captures "
+                         "with ground truth (a generated dataset such as synthetic) have them")
+    finest = summaries[summaries["lod"] == summaries.groupby("variant")["lod"].transform("max")]
+    rows = []
+    for variant in variants:
+        part = finest[finest["variant"] == variant]
+        if part.empty:
+            raise ValueError(f"no summaries for variant {variant!r}; found {sorted(summaries['variant'].unique())}")
+        for split in SPLITS:
+            rows_split = part[part["split"] == split]
+            if not rows_split.empty:
+                rows.append({"variant": variant, "split": split, **{key: rows_split[key].mean() for key in REGION_KEYS}})
+    return pd.DataFrame(rows)
 
 
 def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_view") -> pd.DataFrame:
@@ -177,25 +250,33 @@ def read_train_log(path: Path) -> pd.DataFrame:
 
 
 def training_plot(logs: dict[str, dict[Path, pd.DataFrame]], path: Path, title: str) -> None:
-    """Held-out PSNR against training wall time, one line per (variant, subject), from `read_train_log`."""
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-    for variant, files in logs.items():
+    """Held-out PSNR against training wall time, one line per (variant, subject), from `read_train_log`: a colour
+    per variant (distinct for up to 20), a line style per subject."""
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    colours = plt.get_cmap("tab10" if len(logs) <= 10 else "tab20")
+    subjects = sorted({Path(file).parts[-3] for files in logs.values() for file in files})
+    styles = ["-", "--", ":", "-."]
+    for index, (variant, files) in enumerate(logs.items()):
         for file, log in files.items():
             log = log.dropna(subset=["heldout_psnr"])
-            ax.plot(log["wall_s"], log["heldout_psnr"], marker="o", markersize=3, label=f"{variant} ({Path(file).parts[-3]})")
-    ax.set_xlabel("training wall time [s]")
+            subject = Path(file).parts[-3]
+            ax.plot(log["wall_s"], log["heldout_psnr"], marker="o", markersize=3, color=colours(index % colours.N),
+                    linestyle=styles[subjects.index(subject) % len(styles)], label=f"{variant} ({subject})")
+    ax.set_xlabel("fit wall time, held-out evaluations included [s]")
     ax.set_ylabel("held-out novel-view PSNR [dB]")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    if ax.get_lines():
+        ax.legend(fontsize=8)
     fig.tight_layout()
     write_figure(path, fig)
 
 
 def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], variants: list[str], output: Path,
                 overwrite: bool = False) -> None:
-    """Write the tables and the training plot to `output`, after every input has been read and checked; files
-    of the same names are replaced only in a tables output folder, or with `overwrite`."""
+    """The main tables: write the main and LOD tables and the training plot of `variants` to `output`, after every
+    input has been read and checked; files of the same names are replaced only in a tables output folder, or
+    with `overwrite`."""
     table = read_summaries(summaries)
     main = main_table(table, variants)
     lod = lod_table(table, variants)
@@ -215,18 +296,61 @@ def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], var
     print(to_markdown(lod, f"{dataset} LOD"))
 
 
+def make_table(table: str, dataset: str, summaries: list[Path], variants: list[str], output: Path,
+               sigmas: dict[str, float] | None = None, overwrite: bool = False) -> None:
+    """One of the other tables (`ablation`, `noise`, `regions`) of `variants`, as `{dataset}_{table}.csv/.md`
+    in `output`, after every input has been read and checked; `sigmas` {variant: sigma_body} for `noise`."""
+    summary = read_summaries(summaries)
+    if table == "ablation":
+        frame, title = main_table(summary, variants), f"{dataset}: structural ablation (finest LOD)"
+    elif table == "noise":
+        if sigmas is None or set(sigmas) != set(variants):
+            raise ValueError(f"the noise table needs sigma_body of every variant {variants}, got {sigmas}")
+        frame, title = noise_table(summary, sigmas), f"{dataset}: noisy body parameters (finest LOD)"
+    elif table == "regions":
+        frame, title = regions_table(summary, variants), f"{dataset}: ground-truth metrics per region (finest LOD)"
+    else:
+        raise ValueError(f"unknown table {table!r}; expected one of {[t for t in TABLES if t != 'main']}")
+    texts = {f"{dataset}_{table}.csv": frame.to_csv(index=False, float_format="%.6g"),
+             f"{dataset}_{table}.md": to_markdown(frame, title)}
+    claim_files(output, texts, "tables", summaries, overwrite)
+    for name, text in texts.items():
+        write_text(output / name, text)
+    print(texts[f"{dataset}_{table}.md"])
+
+
+def noise_sigmas(profile: str, variants: list[str]) -> dict[str, float]:
+    """{variant: fit.sigma_body} of `variants` in `profile` (a name or a YAML path), overrides applied."""
+    from pig.avatar.training import FitConfig  # here: only the noise table needs it (and torch)
+    from pig.avatar.variants import variant_overrides
+    from pig.config import load_profile, load_section
+
+    data = load_profile(profile)
+    return {v: load_section(data, "fit", FitConfig, variant_overrides(data, v).get("fit")).sigma_body for v in variants}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pig.stages.tables", description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", required=True)
+    parser.add_argument("--table", choices=TABLES, default="main",
+                        help="main: {dataset}.csv, _lod.csv and _training.png; else {dataset}_{table}.csv (default main)")
     parser.add_argument("--summaries", type=Path, nargs="+", required=True, help="metrics/{split}_lod{l}.json files")
-    parser.add_argument("--train-logs", type=Path, nargs="*", default=[], help="{variant}/train_log.csv files")
+    parser.add_argument("--train-logs", type=Path, nargs="*", default=[], help="{variant}/train_log.csv files (main table)")
     parser.add_argument("--variants", nargs="+", required=True, help="row order of the tables")
+    parser.add_argument("--profile", default="cpu-demo",
+                        help="profile the variants were fitted with: the noise table reads their fit.sigma_body")
     parser.add_argument("--output", type=Path, required=True, help="tables directory (results/tables)")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace files of the same names in an --output folder the tables stage did not write")
     args = parser.parse_args(argv)
-    make_tables(args.dataset, args.summaries, args.train_logs, args.variants, args.output, args.overwrite)
+    if args.table != "main" and args.train_logs:
+        parser.error(f"--train-logs: only the main table plots training, not --table {args.table}")
+    if args.table == "main":
+        make_tables(args.dataset, args.summaries, args.train_logs, args.variants, args.output, args.overwrite)
+    else:
+        sigmas = noise_sigmas(args.profile, args.variants) if args.table == "noise" else None
+        make_table(args.table, args.dataset, args.summaries, args.variants, args.output, sigmas, args.overwrite)
     return 0
 
 

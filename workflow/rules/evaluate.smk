@@ -1,15 +1,45 @@
 # Render the held-out splits at every level of detail, score them, and build the paper's tables.
+# Each table collects the config's `variants` that belong to it (pig.avatar.variants.table_variants), e.g.
+#   snakemake --cores 2 results/tables/synthetic_ablation.csv --config 'variants=[pig,no_precond,template_bound]'
+# fits, renders and scores just those. The regions table needs ground truth: only generated datasets have it.
 from pig.avatar.config import AvatarConfig
-from pig.avatar.variants import variant_overrides
+from pig.avatar.variants import table_variants, variant_overrides
 from pig.config import load_section
 
 SPLITS = ["novel_view", "novel_pose"]
+OTHER_TABLES = ["ablation", "noise", "regions"]
 
 
 def lod_levels(variant):
     """LOD indices 0..L-1 of a variant: the profile's `avatar.levels` after the variant's overrides."""
     overrides = variant_overrides(profile(), variant).get("avatar")
     return list(range(load_section(profile(), "avatar", AvatarConfig, overrides).levels))
+
+
+def table_runs(dataset, table):
+    """(subject, variant) pairs of a table: its variants among the config's on the dataset's `subjects` (main and
+    regions tables) or `<table>_subjects` (ablation, noise). Refused at once, naming the target, when it has none."""
+    target = f"results/tables/{dataset}{'' if table == 'main' else '_' + table}.csv"
+    if table == "regions" and not dataset_config(dataset).get("generated", False):
+        raise ValueError(f"{target}: region metrics need the ground-truth meshes that only generated datasets have "
+                         f"(`generated: true`, e.g. synthetic); {config['datasets'][dataset]} is a real capture")
+    names = table_variants(profile(), config["variants"], table)
+    if not names:
+        raise ValueError(f"{target}: none of the variants {config['variants']} belongs to the {table} table; "
+                         "name them with --config 'variants=[pig,...]'")
+    people = subjects(dataset, "main" if table in ("main", "regions") else table)
+    if not people:
+        raise ValueError(f"{target}: {config['datasets'][dataset]} names no `{table}_subjects`")
+    return [(subject, variant) for subject in people for variant in names]
+
+
+def table_summaries(dataset, table):
+    return [
+        f"results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json"
+        for subject, variant in table_runs(dataset, table)
+        for split in SPLITS
+        for lod in lod_levels(variant)
+    ]
 
 
 rule render_split:
@@ -68,19 +98,14 @@ rule evaluate:
         "> {log:q} 2>&1"
 
 
+# The main and LOD tables and the training plot (held-out PSNR against wall time) of every variant.
 rule make_tables:
     input:
-        summaries=lambda wildcards: [
-            f"results/{wildcards.dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json"
-            for subject in subjects(wildcards.dataset)
-            for variant in config["variants"]
-            for split in SPLITS
-            for lod in lod_levels(variant)
+        summaries=lambda wildcards: table_summaries(wildcards.dataset, "main"),
+        train_logs=lambda wildcards: [
+            f"results/{wildcards.dataset}/{subject}/{variant}/train_log.csv"
+            for subject, variant in table_runs(wildcards.dataset, "main")
         ],
-        train_logs=lambda wildcards: expand(
-            "results/{dataset}/{subject}/{variant}/train_log.csv",
-            dataset=wildcards.dataset, subject=subjects(wildcards.dataset), variant=config["variants"],
-        ),
     output:
         table="results/tables/{dataset}.csv",
         markdown="results/tables/{dataset}.md",
@@ -102,3 +127,30 @@ rule make_tables:
     shell:
         "python -m pig.stages.tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
         "--train-logs {input.train_logs:q} --variants {params.variants:q} --output {params.output:q} > {log:q} 2>&1"
+
+
+# The structural ablation, noise and ground-truth region tables.
+rule make_table:
+    input:
+        summaries=lambda wildcards: table_summaries(wildcards.dataset, wildcards.table),
+    output:
+        table="results/tables/{dataset}_{table}.csv",
+        markdown="results/tables/{dataset}_{table}.md",
+    params:
+        variants=lambda wildcards: table_variants(profile(), config["variants"], wildcards.table),
+        output=lambda wildcards, output: str(Path(output.table).parent),
+        profile=PROFILE,
+    log:
+        "results/tables/logs/{dataset}_{table}.log",
+    benchmark:
+        "results/tables/benchmarks/{dataset}_{table}.tsv"
+    wildcard_constraints:
+        dataset="|".join(config["datasets"]),
+        table="|".join(OTHER_TABLES),
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    shell:
+        "python -m pig.stages.tables --table {wildcards.table:q} --dataset {wildcards.dataset:q} "
+        "--summaries {input.summaries:q} --variants {params.variants:q} --profile {params.profile:q} "
+        "--output {params.output:q} > {log:q} 2>&1"
