@@ -343,6 +343,21 @@ def test_loss_terms_read_back_and_an_older_file_reads_as_unknown(spec, saved, tm
         loss_terms(older)
 
 
+def test_resume_of_a_checkpoint_older_than_a_setting_takes_its_default(spec, saved, tmp_path):
+    """A fit begun before pig had `avatar.offset_frame` ran with world offsets: it resumes under the default and
+    is refused when the profile now asks for local offsets; CUDA-graph replay of CG is free to change."""
+    state = torch.load(saved[0], weights_only=True)
+    del state["spec"]["avatar"]["offset_frame"]
+    older = tmp_path / "checkpoint.pt"
+    torch.save(state, older)
+    assert spec["avatar"]["offset_frame"] == "world"
+    assert _resume(older, spec)[0] == 2
+    with pytest.raises(CheckpointError) as err:
+        _resume(older, {**spec, "avatar": {**spec["avatar"], "offset_frame": "local"}})
+    assert str(err.value) == _refusal(older, "profile section 'avatar' differs in offset_frame")
+    assert _resume(saved[0], {**spec, "precond": {**spec["precond"], "cg_graphs": not spec["precond"]["cg_graphs"]}})[0] == 2
+
+
 def test_resume_accepts_a_longer_run_and_other_cadence(spec, saved):
     settings = {"fit": {**SETTINGS["fit"], "iterations": 50, "eval_every": 1, "checkpoint_minutes": 0.0},
                 "rasterizer": {"backend": "cpu", "max_pairs": 10**7}}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import pickle
 import zipfile
+from dataclasses import MISSING, fields
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +24,9 @@ FORMAT_VERSION = 2  # 1 held numpy arrays, which only an unrestricted (code-runn
 AVATAR_KEYS = ("version", "spec", "model")
 TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteration", "wall_s", "log", "settings")
 # Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading,
-# memory bands.
+# memory bands, replaying the same CG kernels as a CUDA graph.
 FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers", "log_every"},
-                 "rasterizer": {"max_pairs"}}
+                 "rasterizer": {"max_pairs"}, "precond": {"cg_graphs"}}
 SPEC_SECTIONS = ("avatar", "field", "precond")  # profile sections recorded in the spec
 
 
@@ -165,6 +166,19 @@ def _loss_terms(state: dict, path: Path) -> dict[str, dict]:
     return terms
 
 
+def _section_defaults() -> dict[str, dict]:
+    """Default values of the recorded profile sections' keys."""
+    from pig.avatar.config import AvatarConfig
+    from pig.avatar.training import FitConfig
+    from pig.field.latent_grid import FieldConfig
+    from pig.field.precondition import PrecondConfig
+    from pig.render import RasterizerConfig
+
+    classes = {"avatar": AvatarConfig, "field": FieldConfig, "precond": PrecondConfig, "fit": FitConfig,
+               "rasterizer": RasterizerConfig}
+    return {name: {f.name: f.default for f in fields(cls) if f.default is not MISSING} for name, cls in classes.items()}
+
+
 def _mismatch(state: dict, spec: dict, settings: dict[str, dict], terms: dict[str, dict],
               old_terms: dict[str, dict]) -> list[str]:
     """What differs between the fit a checkpoint's state belongs to and the fit of `spec`, `settings` and loss
@@ -177,9 +191,13 @@ def _mismatch(state: dict, spec: dict, settings: dict[str, dict], terms: dict[st
         differs.append(f"the capture differs ({', '.join(parts)})")
     sections = [(name, state["spec"].get(name, {}), spec[name]) for name in SPEC_SECTIONS]
     sections += [(name, state["settings"].get(name, {}), values) for name, values in settings.items()]
+    defaults = _section_defaults()
     for name, old, new in sections:
+        # A key that one side lacks was added to pig since that fit began, which then ran with its default.
+        default = defaults.get(name, {})
         keys = sorted(key for key in old.keys() | new.keys()
-                      if key not in FREE_SETTINGS.get(name, ()) and old.get(key) != new.get(key))
+                      if key not in FREE_SETTINGS.get(name, ())
+                      and old.get(key, default.get(key)) != new.get(key, default.get(key)))
         if keys:
             differs.append(f"profile section '{name}' differs in {', '.join(keys)}")
     if state["spec"].get("variant") != spec["variant"]:
