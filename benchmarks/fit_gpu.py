@@ -13,11 +13,15 @@ Run on the GPU machine:
             --variant no_prefetch:fit.prefetch=0
 
 A variant is `NAME:section.key=value,...` (values in YAML) over the profile, e.g. the speed levers
-`fit.precision=bf16`, `fit.compile=true` (pig/avatar/training.py).
+`fit.precision=bf16`, `fit.compile=true` (pig/avatar/training.py). A NAME among the profile's `variants:`
+(`template_bound:`, `no_precond:`, ...) fits that method variant, with any overrides on top. `--warm-compile N`
+first runs an untimed N-iteration fit, so that compilation (cached on disk) does not eat the first variant's
+budget more than the others'.
 
 `--budget B` (fixed-budget mode): each variant fits for B seconds of training wall time (`fit.time_budget_s`;
 the learning-rate schedule's progress is the time fraction), then renders and evaluates novel view and novel
-pose at every LOD with the render and evaluate stages, and prints their PSNR and SSIM per LOD.
+pose at every LOD with the render and evaluate stages, and prints their PSNR and SSIM per LOD, and at the finest
+LOD the ground-truth metrics (regions, geometry, drift) where the evaluate stage computed them.
 `--eval-every N` keeps the fit's held-out evaluations every N iterations and prints the held-out PSNR of every
 variant at each of them with its difference to the first variant's (the parity check of two paths);
 `--plot PATH` draws those curves. After the timed iterations, `--profile-phases N`
@@ -126,6 +130,7 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
         varied["fit"].update(iterations=10**7, time_budget_s=args.budget)
     path = args.workdir / f"profile_{name}.yaml"
     path.write_text(yaml.safe_dump(varied))
+    variant = name if name in (profile.get("variants") or {}) else "pig"
     out_dir = args.workdir / f"fit_{name}"
     shutil.rmtree(out_dir, ignore_errors=True)
 
@@ -153,7 +158,8 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
     torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
     try:
-        fit(capture, out_dir, str(path), device="cuda", on_iteration=tick, **({"phase": timer} if timer else {}))
+        fit(capture, out_dir, str(path), variant=variant, device="cuda", on_iteration=tick,
+            **({"phase": timer} if timer else {}))
     finally:
         if timer is not None:
             timer.close()
@@ -164,7 +170,7 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
         waits = [float(row["data_wait_ms"]) for row in csv.DictReader(file)
                  if args.warmup < int(row["iteration"]) <= args.iterations] or [math.nan]
     result = {
-        "name": name, "overrides": overrides, "iterations_timed": timed, "ms_per_iteration": ms,
+        "name": name, "variant": variant, "overrides": overrides, "iterations_timed": timed, "ms_per_iteration": ms,
         "wait_ms_median": statistics.median(waits), "wait_ms_mean": statistics.mean(waits),
         "wait_share": statistics.mean(waits) / ms,
         "peak_gib": torch.cuda.max_memory_allocated() / 2**30, "fit_total_s": time.perf_counter() - t0,
@@ -176,11 +182,18 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
         result["budget"] = evaluate_budget_run(args, name, out_dir, path, capture)
     if args.eval_every:
         with open(out_dir / "train_log.csv", newline="") as file:
-            result["heldout"] = {int(row["iteration"]): float(row["heldout_psnr"]) for row in csv.DictReader(file) if row["heldout_psnr"]}
+            rows = [row for row in csv.DictReader(file) if row["heldout_psnr"]]
+        result["heldout"] = {int(row["iteration"]): float(row["heldout_psnr"]) for row in rows}
+        result["heldout_by_time"] = [(float(row["train_s"]), float(row["heldout_psnr"])) for row in rows]
     if args.profile_ops:
         table = ops.key_averages().table(sort_by="device_time_total", row_limit=args.op_rows, max_name_column_width=70)
         result["ops_table"] = table
     return result
+
+
+# The evaluate stage's ground-truth metrics (synthetic captures only), as the budget table prints them.
+GROUND_TRUTH_KEYS = ("psnr_garment", "ssim_garment", "psnr_body", "ssim_body", "psnr_background", "accuracy_mm_garment",
+                     "completeness_mm_garment", "accuracy_mm_body", "completeness_mm_body", "drift_mm", "drift_mm_last")
 
 
 def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capture: Path) -> dict:
@@ -203,7 +216,8 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
         out[split] = {}
         for record in sorted(metrics.glob(f"{split}_lod*.json")):
             summary = read_record(record, "evaluate summary")
-            out[split][int(summary["lod"])] = {k: summary[k] for k in ("psnr", "ssim", "images")}
+            out[split][int(summary["lod"])] = {k: summary[k] for k in ("psnr", "ssim", "images", *GROUND_TRUTH_KEYS)
+                                               if k in summary}
     out["evaluate_s"] = time.perf_counter() - t0
     return out
 
@@ -214,14 +228,17 @@ def plot_heldout(results: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for r in results:
         steps = sorted(r["heldout"])
-        ax.plot(steps, [r["heldout"][s] for s in steps], marker="o", label=r["name"])
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("held-out novel-view PSNR [dB] (finest LOD)")
-    ax.grid(alpha=0.3)
-    ax.legend()
+        axes[0].plot(steps, [r["heldout"][s] for s in steps], marker="o", label=r["name"])
+        axes[1].plot(*zip(*r["heldout_by_time"]), marker="o", label=r["name"])
+    axes[0].set_xlabel("iteration")
+    axes[1].set_xlabel("training time, held-out evaluations left out [s]")
+    for ax in axes:
+        ax.set_ylabel("held-out novel-view PSNR [dB] (finest LOD)")
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
 
@@ -244,6 +261,7 @@ def main(argv=None) -> int:
     parser.add_argument("--budget", type=float, default=None, help="fixed-budget mode: seconds of training per variant")
     parser.add_argument("--eval-every", type=int, default=None, help="held-out evaluation every N iterations (parity)")
     parser.add_argument("--plot", type=Path, default=None, help="with --eval-every: plot of the held-out PSNR curves")
+    parser.add_argument("--warm-compile", type=int, default=0, help="untimed fit of N iterations before the variants")
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("fit_gpu: no CUDA device", file=sys.stderr)
@@ -267,6 +285,10 @@ def main(argv=None) -> int:
         stamps["preprocess_s"] = time.perf_counter() - t0
 
     variants = [parse_variant(v) for v in args.variant] or [("profile", {})]
+    if args.warm_compile:
+        warm = argparse.Namespace(**{**vars(args), "iterations": max(args.warm_compile, 2), "warmup": 1, "profile_phases": 0,
+                                     "profile_ops": 0, "budget": None, "eval_every": None})
+        stamps["warm_compile_s"] = run_variant(warm, "warm_compile", variants[0][1], profile, capture)["fit_total_s"]
     results = []
     for variant in variants:  # a line per variant as it ends, in case the run is cut short
         results.append(run_variant(args, *variant, profile, capture))
@@ -312,6 +334,20 @@ def main(argv=None) -> int:
             b = r["budget"]
             cells = [f"{b[split][l]['psnr']:.2f} / {b[split][l]['ssim']:.4f}" for split in ("novel_view", "novel_pose") for l in levels]
             print(f"| {r['name']} | {b['iterations']} | " + " | ".join(cells) + " |")
+        if any("psnr_garment" in r["budget"]["novel_view"][max(r["budget"]["novel_view"])] for r in results):
+            for split in ("novel_view", "novel_pose"):
+                print(f"\nGround truth, {split}, finest LOD: PSNR dB / SSIM per region; geometry mm (accuracy: splats to "
+                      "the true surface, completeness: the true surface to splats); correspondence drift mm")
+                print("| variant | LOD | garment | body | background | garment acc / comp | body acc / comp | drift mean / last |")
+                print("|---|---|---|---|---|---|---|---|")
+                for r in results:
+                    lod = max(r["budget"][split])
+                    m = r["budget"][split][lod]
+                    print(f"| {r['name']} | {lod} | {m['psnr_garment']:.2f} / {m['ssim_garment']:.4f} | "
+                          f"{m['psnr_body']:.2f} / {m['ssim_body']:.4f} | {m['psnr_background']:.2f} | "
+                          f"{m['accuracy_mm_garment']:.1f} / {m['completeness_mm_garment']:.1f} | "
+                          f"{m['accuracy_mm_body']:.1f} / {m['completeness_mm_body']:.1f} | "
+                          f"{m.get('drift_mm', math.nan):.1f} / {m.get('drift_mm_last', math.nan):.1f} |")
     if args.eval_every:
         steps = sorted(results[0]["heldout"])
         print("\nHeld-out novel-view PSNR (finest LOD) per evaluation; difference to " + results[0]["name"])
@@ -322,6 +358,11 @@ def main(argv=None) -> int:
             values = [r["heldout"].get(step, float("nan")) for r in results]
             print(f"| {step} | " + " | ".join(f"{v:.3f}" for v in values) + " | " +
                   " | ".join(f"{v - values[0]:+.3f}" for v in values[1:]) + " |")
+        print("\nHeld-out novel-view PSNR (finest LOD) against training time (held-out evaluations left out)")
+        print("| variant | " + " | ".join(["train s / dB"] * max(len(r["heldout_by_time"]) for r in results)) + " |")
+        print("|---|" + "---|" * max(len(r["heldout_by_time"]) for r in results))
+        for r in results:
+            print(f"| {r['name']} | " + " | ".join(f"{t:.0f} / {p:.2f}" for t, p in r["heldout_by_time"]) + " |")
         if args.plot is not None:
             plot_heldout(results, args.plot)
     for r in results:

@@ -183,6 +183,8 @@ def test_training_plot_draws_every_variant_and_subject(tmp_path, monkeypatch):
             log = tmp_path / "synthetic" / subject / variant / "train_log.csv"
             frame = pd.DataFrame({"iteration": [0, 10, 20, 30], "wall_s": [0.0, 4.0 + v, 9.0 + v, 12.0 + s],
                                   "heldout_psnr": [10.0 + v, np.nan, 20.0 + s, 22.0 + v + s]})
+            if v % 2:  # logs with train_s (evaluations left out) plot it; older logs without it plot wall_s
+                frame.insert(2, "train_s", frame["wall_s"] - [0.0, 1.0, 2.0, 3.0])
             frame.to_csv(log, index=False)
             logs[f"{variant} ({subject})"] = frame.dropna()
     drawn = {}
@@ -196,7 +198,8 @@ def test_training_plot_draws_every_variant_and_subject(tmp_path, monkeypatch):
                 variants, tmp_path / "tables")
     assert set(drawn) == set(logs)
     for label, frame in logs.items():
-        assert drawn[label][:2] == (frame["wall_s"].tolist(), frame["heldout_psnr"].tolist())
+        time = frame["train_s"] if "train_s" in frame else frame["wall_s"]
+        assert drawn[label][:2] == (time.tolist(), frame["heldout_psnr"].tolist())
     # A colour per variant, a line style per subject.
     assert len({drawn[f"{v} (s0)"][2] for v in variants}) == len(variants)
     assert all(drawn[f"{v} (s0)"][2] == drawn[f"{v} (s1)"][2] for v in variants)

@@ -235,7 +235,8 @@ def to_markdown(table: pd.DataFrame, title: str) -> str:
 
 
 def read_train_log(path: Path) -> pd.DataFrame:
-    """Wall time and held-out PSNR of one train_log.csv, checked: numbers, both columns present."""
+    """Training time and held-out PSNR of one train_log.csv, checked: numbers, both columns present. The time is
+    `train_s` (held-out evaluations left out); logs older than that column give `wall_s` in its place."""
     columns = ["wall_s", "heldout_psnr"]
     try:
         log = pd.read_csv(path)
@@ -244,9 +245,11 @@ def read_train_log(path: Path) -> pd.DataFrame:
     if not set(columns) <= set(log.columns):
         raise ValueError(f"{path}: train log lacks columns {sorted(set(columns) - set(log.columns))}; found {list(log.columns)}")
     try:
-        return log[columns].apply(pd.to_numeric)
+        parsed = log[columns].apply(pd.to_numeric)
+        parsed["train_s"] = pd.to_numeric(log["train_s"]) if "train_s" in log.columns else parsed["wall_s"]
+        return parsed
     except (ValueError, TypeError) as err:
-        raise ValueError(f"{path}: train log has a non-numeric wall_s or heldout_psnr ({err})") from None
+        raise ValueError(f"{path}: train log has a non-numeric wall_s, train_s or heldout_psnr ({err})") from None
 
 
 def training_plot(logs: dict[str, dict[Path, pd.DataFrame]], path: Path, title: str) -> None:
@@ -260,9 +263,9 @@ def training_plot(logs: dict[str, dict[Path, pd.DataFrame]], path: Path, title: 
         for file, log in files.items():
             log = log.dropna(subset=["heldout_psnr"])
             subject = Path(file).parts[-3]
-            ax.plot(log["wall_s"], log["heldout_psnr"], marker="o", markersize=3, color=colours(index % colours.N),
+            ax.plot(log["train_s"], log["heldout_psnr"], marker="o", markersize=3, color=colours(index % colours.N),
                     linestyle=styles[subjects.index(subject) % len(styles)], label=f"{variant} ({subject})")
-    ax.set_xlabel("fit wall time, held-out evaluations included [s]")
+    ax.set_xlabel("training wall time, held-out evaluations left out [s]")
     ax.set_ylabel("held-out novel-view PSNR [dB]")
     ax.set_title(title)
     ax.grid(alpha=0.3)
