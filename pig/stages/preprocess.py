@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from pig.body.model import BodyModel, BodyModelError
-from pig.config import REPO_ROOT, ConfigError, load_profile, load_section, load_yaml
+from pig.config import ConfigError, load_profile, load_section, load_yaml, named_config
 from pig.data.capture import MASK_SUFFIX
 from pig.data.formats import FORMATS, capture_format, open_capture
 from pig.data.images import read_image
@@ -291,7 +291,7 @@ def _dataset(value: str | None) -> dict:
         return {}
     path = Path(value)
     if path.suffix not in (".yaml", ".yml"):
-        path = REPO_ROOT / "config" / "datasets" / f"{value}.yaml"
+        path = named_config("datasets", value)
     data = load_yaml(path)
     data["_path"] = str(path)
     return data
