@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pig.avatar.variants import variant_overrides
 from pig.config import load_profile, load_yaml
+from pig.resources import check_rule_names, rule_resources
 
 PROFILE = config["profile"]
 
@@ -16,6 +17,27 @@ PROFILE = config["profile"]
 def profile():
     """The profile's mapping, read once per Snakemake run so that every rule sees the same settings."""
     return load_profile(PROFILE)
+
+
+# Rules whose threads and resources come from the profile's `resources:` section (pig.resources).
+PRESET_RESOURCE_RULES = set()
+
+
+def preset_threads(rule):
+    """`threads:` of `rule` from the profile's `resources:` section."""
+    PRESET_RESOURCE_RULES.add(rule)
+    return rule_resources(profile(), rule).threads
+
+
+def preset_resources(rule):
+    """`resources:` of `rule` (mem_mb, runtime, gpu, slurm_extra) from the profile's `resources:` section."""
+    PRESET_RESOURCE_RULES.add(rule)
+    return rule_resources(profile(), rule).snakemake()
+
+
+def check_preset_resources():
+    """After every rule is defined: the `resources:` section names no rule that does not read it (a typo)."""
+    check_rule_names(profile(), PRESET_RESOURCE_RULES)
 
 
 def dataset_config(name):
