@@ -28,11 +28,13 @@ def test_environment_installs_the_package_dependencies_and_no_path(path):
     pip = pip_section(env)
     options = [line for line in pip if line.startswith("-")]
     assert all(line.startswith("--extra-index-url https://") for line in options), options
-    wanted = {Requirement(line) for line in tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]}
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    wanted = {Requirement(line) for line in project["dependencies"]}
     given = {Requirement(line.split("#")[0]) for line in pip if not line.startswith("-")}
     assert all(not requirement.url for requirement in given)
     # Snakemake runs outside the environment; torch is pinned to one build, within pyproject's range.
-    assert {str(r) for r in given if r.name != "torch"} == {str(r) for r in wanted if r.name not in ("torch", "snakemake")}
+    assert {str(r) for r in given if r.name != "torch"} == {str(r) for r in wanted
+                                                             if r.name not in ("torch", "snakemake")}
     (torch,) = [r for r in given if r.name == "torch"]
     (pinned,) = torch.specifier
     assert pinned.operator == "==" and next(r for r in wanted if r.name == "torch").specifier.contains(pinned.version)
