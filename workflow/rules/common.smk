@@ -23,20 +23,21 @@ def profile():
 PRESET_RESOURCE_RULES = set()
 
 
-def preset_threads(rule):
-    """`threads:` of `rule` from the profile's `resources:` section."""
-    PRESET_RESOURCE_RULES.add(rule)
-    return rule_resources(profile(), rule).threads
+def preset_threads(name):
+    """Threads from the profile's `resources:` section, for the rule called `name`."""
+    PRESET_RESOURCE_RULES.add(name)
+    return rule_resources(profile(), name).threads
 
 
-def preset_resources(rule):
-    """`resources:` of `rule` (mem_mb, runtime, gpu, slurm_extra) from the profile's `resources:` section."""
-    PRESET_RESOURCE_RULES.add(rule)
-    return rule_resources(profile(), rule).snakemake()
+def preset_resources(name):
+    """Resources (mem_mb, runtime, gpu, slurm_extra) from the profile's `resources:` section, for the rule called
+    `name`."""
+    PRESET_RESOURCE_RULES.add(name)
+    return rule_resources(profile(), name).snakemake()
 
 
 def check_preset_resources():
-    """After every rule is defined: the `resources:` section names no rule that does not read it (a typo)."""
+    """Once all rules exist, refuses entries of the profile's `resources:` section that no rule reads (a typo)."""
     check_rule_names(profile(), PRESET_RESOURCE_RULES)
 
 
