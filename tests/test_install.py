@@ -26,6 +26,8 @@ except ConfigError as err:
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
     """The package installed with pip from a copy of the checkout (so no build folder lands in the checkout)."""
+    # Built offline with this environment's setuptools, which must read pyproject's SPDX `license`.
+    pytest.importorskip("setuptools", minversion="77")
     root = tmp_path_factory.mktemp("install")
     source = root / "source"
     source.mkdir()

@@ -153,7 +153,8 @@ def test_workflow_runs_on_slurm(cluster, tmp_path):
     (work / "config").symlink_to(REPO / "config")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     command = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"),
-               "--workflow-profile", str(REPO / "workflow" / "profiles" / "slurm"), "--config", "profile=test",
+               "--workflow-profile", str(REPO / "workflow" / "profiles" / "slurm"),
+               "--config", "profile=test", "dataset=synthetic", "variants=[pig]",
                # This cluster's particulars: no accounts, no slurmdbd; quick first status check.
                "--slurm-no-account", "--slurm-status-command", "squeue",
                "--slurm-init-seconds-before-status-checks", "1", "--slurm-keep-successful-logs"]
