@@ -17,6 +17,9 @@ include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/animate.smk"
 
 
+check_preset_resources()
+
+
 rule all:
     input:
         default_targets(),

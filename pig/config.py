@@ -20,7 +20,6 @@ if TYPE_CHECKING:
     import torch
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-PROFILE_DIR = REPO_ROOT / "config" / "profiles"
 
 T = TypeVar("T")
 
@@ -50,6 +49,32 @@ _Loader.add_implicit_resolver(_FLOAT, re.compile(r"""^(?:[-+]?(?:[0-9]+\.[0-9]*|
     |\.(?:nan|NaN|NAN))$""", re.X), list("-+0123456789."))
 
 
+def config_dirs(kind: str) -> list[Path]:
+    """The existing `config/<kind>/` folders where a named file (a profile, a dataset) is sought, in order.
+
+    First the working directory's, where the workflow runs every rule (locally and on cluster nodes), so that a
+    non-editable install (`pip install .`, a Snakemake conda environment) finds the checkout's files; then the
+    one beside this package, which an editable install finds from anywhere.
+    """
+    folders = dict.fromkeys(folder.resolve() for folder in (Path.cwd() / "config" / kind, REPO_ROOT / "config" / kind))
+    return [folder for folder in folders if folder.is_dir()]
+
+
+def named_config(kind: str, name: str) -> Path:
+    """`config/<kind>/<name>.yaml` from the first of `config_dirs(kind)` that has it."""
+    folders = config_dirs(kind)
+    for folder in folders:
+        if (folder / f"{name}.yaml").is_file():
+            return folder / f"{name}.yaml"
+    singular = kind.rstrip("s")
+    if not folders:
+        raise ConfigError(f"unknown {singular} {name!r}: no config/{kind}/ in the working directory {Path.cwd()} or "
+                          f"beside the package ({REPO_ROOT}); run from the pig checkout or give a path to a .yaml file")
+    known = sorted({path.stem for folder in folders for path in folder.glob("*.yaml")})
+    where = " and ".join(str(folder) for folder in folders)
+    raise ConfigError(f"unknown {singular} {name!r}: expected one of {known} (in {where}) or a path to a .yaml file")
+
+
 def profile_path(name_or_path: str | Path) -> Path:
     """Resolve a profile name (`cpu-demo`) or a path to a profile YAML file."""
     candidate = Path(name_or_path)
@@ -57,11 +82,7 @@ def profile_path(name_or_path: str | Path) -> Path:
         if not candidate.is_file():
             raise ConfigError(f"profile file {candidate} does not exist")
         return candidate
-    path = PROFILE_DIR / f"{name_or_path}.yaml"
-    if not path.is_file():
-        known = sorted(p.stem for p in PROFILE_DIR.glob("*.yaml"))
-        raise ConfigError(f"unknown profile {name_or_path!r}: expected one of {known} or a path to a .yaml file")
-    return path
+    return named_config("profiles", str(name_or_path))
 
 
 def parse_yaml(text: str) -> Any:

@@ -131,10 +131,10 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
     from pig.body.motion import Motion, align_motion, capture_frame, read_motion
     from pig.config import resolve_device
     from pig.data.exr import write_exr
+    from pig.progress import progress_bar
     from pig.render.api import RasterizerConfig
     from pig.stages._io import write_json, write_png
     from pig.stages._outputs import build_dir, claim_dir
-    from tqdm import tqdm
 
     rasterizer = rasterizer or RasterizerConfig()
     orbit = orbit or Orbit()
@@ -186,7 +186,7 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
     with build_dir(output, "animate") as tmp:
         video = VideoWriter(tmp / VIDEO_NAME, motion.fps, width, height)
         try:
-            for i in tqdm(range(count), desc="animate", unit="frame"):
+            for i in progress_bar(range(count), desc="animate", unit="frame"):
                 gaussians = driver.gaussians(level, motion.full_pose[i], motion.transl[i])
                 rgb, alpha, depth = render_frame(gaussians, viewmats_t[i], K_t, width, height, black, rasterizer)
                 video.write(rgb)

@@ -25,7 +25,6 @@ from typing import Callable, Literal
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
@@ -40,6 +39,7 @@ from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.metrics.psnr import psnr
+from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
 from pig.stages._io import write_figure, write_text
 from pig.stages._outputs import claim_files
@@ -368,7 +368,8 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
             return row
 
         iteration = start
-        progress = tqdm(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit", leave=False)
+        progress = progress_bar(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit",
+                                leave=False)
         for i in progress:
             trained = wall_before + time.perf_counter() - started - evaluating
             done = i / fit_cfg.iterations
@@ -404,7 +405,7 @@ def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, d
                     t0 = time.perf_counter()
                     row["heldout_psnr"] = held_out.psnr(model, raster)
                     evaluating += time.perf_counter() - t0
-                    progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}")
+                    progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}", refresh=False)
                 rows.append(row)
             if save:
                 checkpoint(state_path, iteration, wall_before + time.perf_counter() - started)

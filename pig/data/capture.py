@@ -18,7 +18,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from pig.body.model import BodyModel
 from pig.body.params import ParamsError, SmplxParams
@@ -26,6 +25,7 @@ from pig.data.images import read_image
 from pig.data.raw import CaptureError
 from pig.data.rectify import composite
 from pig.data.splits import SPLITS
+from pig.progress import progress_bar
 
 CAMERA_KEYS = ("K", "R", "T", "width", "height")
 IMAGE_SUFFIXES = (".png", ".jpg")
@@ -184,8 +184,8 @@ class Capture:
             pairs = [(c, f) for c in self.cameras for f in self.frames if self.has(c, f)]
         jobs = [(kind, c, f) for c, f in pairs for kind in ("images", "masks")]
         with ThreadPoolExecutor(workers) as pool:
-            for _ in tqdm(pool.map(lambda job: self._read(*job), jobs), total=len(jobs), desc="load capture",
-                          unit="img"):
+            for _ in progress_bar(pool.map(lambda job: self._read(*job), jobs), total=len(jobs), desc="load capture",
+                                  unit="img"):
                 pass
 
     def _read(self, kind: str, camera: str, frame: int) -> np.ndarray:

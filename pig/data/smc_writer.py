@@ -17,11 +17,11 @@ import cv2
 import h5py
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from pig.body.model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, BodyModel
 from pig.data.dna import ANNOTS_SUFFIX, CALIBRATION, CAMERA_GROUPS, MASKS, SMPLX, bgr_matrix_to_rgb, model_gender
 from pig.data.raw import CaptureError, RawCapture
+from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import atomic_path
 
@@ -93,7 +93,7 @@ def write_smc(capture: RawCapture, out_dir: str | Path, sequence: str, body_mode
     total = len(names) * len(frames)
     with atomic_path(main_path) as tmp_main, atomic_path(annots_path) as tmp_annots:
         with h5py.File(tmp_main, "w") as main, h5py.File(tmp_annots, "w") as annots, \
-                tqdm(total=total, desc=f"write {sequence}.smc", unit="img") as progress:
+                progress_bar(total=total, desc=f"write {sequence}.smc", unit="img") as progress:
             for key, value in attributes.items():
                 main.attrs[key] = value
             calibration = annots.create_group(CALIBRATION)

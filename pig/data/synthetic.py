@@ -13,11 +13,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from pig.body.model import BodyModel
 from pig.body.npz import read_npz
 from pig.body.standin import make_standin_arrays
+from pig.progress import progress_bar
 from pig.stages._io import write_json
 from pig.stages._outputs import build_dir, claim_dir
 
@@ -244,7 +244,7 @@ def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progres
     tasks = _tasks(cfg)
     init = (scene.appearance, scene.cameras, scene.body_vertices, scene.garment_vertices, str(root), cfg.supersample,
             cfg.jpeg_quality)
-    bar = tqdm(total=cfg.frames * cfg.cameras, desc="render views", unit="view", disable=not progress)
+    bar = progress_bar(total=cfg.frames * cfg.cameras, desc="render views", unit="view", disable=not progress)
     workers = min(cfg.workers, len(tasks))
     if workers == 1:
         _init_worker(*init)

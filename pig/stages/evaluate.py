@@ -17,7 +17,6 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 import torch
-from tqdm import tqdm
 
 from pig.config import load_profile, load_section, resolve_device
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
@@ -25,6 +24,7 @@ from pig.metrics.lpips import LPIPS
 from pig.metrics.psnr import psnr
 from pig.metrics.ssim import ssim
 from pig.metrics.weights import WeightsMissing
+from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import read_png, read_record, write_json, write_text
 from pig.stages._outputs import claim_files
@@ -76,7 +76,7 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
         by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
     batches = [pairs[i:i + cfg.batch_size] for pairs in by_size.values() for i in range(0, len(pairs), cfg.batch_size)]
     rows, fake_features, real_features = [], FeatureStatistics(), FeatureStatistics()
-    for batch in tqdm(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch"):
+    for batch in progress_bar(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch"):
         renders = np.stack([read_png(level_dir / cam / f"{frame:08d}.png") for cam, frame in batch])
         truths = np.stack([capture.image(cam, frame) * capture.mask(cam, frame)[..., None] for cam, frame in batch])
         if renders.shape != truths.shape:

@@ -22,10 +22,9 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from pig.body.model import BodyModel, BodyModelError
-from pig.config import REPO_ROOT, ConfigError, load_profile, load_section, load_yaml
+from pig.config import ConfigError, load_profile, load_section, load_yaml, named_config
 from pig.data.capture import MASK_SUFFIX
 from pig.data.formats import FORMATS, capture_format, open_capture
 from pig.data.images import read_image
@@ -33,6 +32,7 @@ from pig.data.projection_check import Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
+from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import atomic_path, write_json
 from pig.stages._outputs import claim_dir, resumable_dir
@@ -222,7 +222,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         cv2.setNumThreads(1)  # parallel over images instead; OpenCV's own pool would oversubscribe the cores
         pool = ThreadPoolExecutor(cfg.workers or len(os.sched_getaffinity(0)))
         resumed = sum(map(len, done.values()))
-        bar = tqdm(total=len(pairs), initial=resumed, desc="preprocess", unit="img", disable=not progress)
+        bar = progress_bar(total=len(pairs), initial=resumed, desc="preprocess", unit="img", disable=not progress)
         images_start = time.perf_counter()
         try:
             # Camera by camera, so only one camera's undistortion maps are alive at a time. pool.map keeps the
@@ -291,7 +291,7 @@ def _dataset(value: str | None) -> dict:
         return {}
     path = Path(value)
     if path.suffix not in (".yaml", ".yml"):
-        path = REPO_ROOT / "config" / "datasets" / f"{value}.yaml"
+        path = named_config("datasets", value)
     data = load_yaml(path)
     data["_path"] = str(path)
     return data

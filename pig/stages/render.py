@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from pig.avatar.driver import AvatarDriver
 from pig.config import load_profile, load_section, resolve_device
 from pig.data.exr import write_exr
 from pig.field.precondition import bake_preconditioning
+from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig.stages._cli import add_common_arguments, run_cli
 from pig.stages._io import write_json, write_png
@@ -140,7 +140,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
     levels = range(model.num_levels)
     with build_dir(output, "render") as tmp, \
-            tqdm(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
+            progress_bar(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
         for lod in levels:
             level_dir = tmp / f"lod{lod}"
             for frame in frames:

@@ -27,10 +27,9 @@ rule animate:
         settings=profile_settings("rasterizer"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/animate_{clip}.log",
+    threads: preset_threads("animate")
     resources:
-        gpu=1,
-        mem_mb=8000,
-        runtime=60,
+        **preset_resources("animate"),
     shell:
         "python -m pig.stages.animate --checkpoint {input.checkpoint:q} --output {output:q} {params.motion} "
         "--profile {params.profile:q} {params.options} > {log:q} 2>&1"

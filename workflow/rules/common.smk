@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pig.avatar.variants import variant_overrides
 from pig.config import load_profile, load_yaml
+from pig.resources import check_rule_names, rule_resources
 
 PROFILE = config["profile"]
 
@@ -16,6 +17,28 @@ PROFILE = config["profile"]
 def profile():
     """The profile's mapping, read once per Snakemake run so that every rule sees the same settings."""
     return load_profile(PROFILE)
+
+
+# Rules whose threads and resources come from the profile's `resources:` section (pig.resources).
+PRESET_RESOURCE_RULES = set()
+
+
+def preset_threads(name):
+    """Threads from the profile's `resources:` section, for the rule called `name`."""
+    PRESET_RESOURCE_RULES.add(name)
+    return rule_resources(profile(), name).threads
+
+
+def preset_resources(name):
+    """Resources (mem_mb, runtime, gpu, slurm_extra) from the profile's `resources:` section, for the rule called
+    `name`."""
+    PRESET_RESOURCE_RULES.add(name)
+    return rule_resources(profile(), name).snakemake()
+
+
+def check_preset_resources():
+    """Once all rules exist, refuses entries of the profile's `resources:` section that no rule reads (a typo)."""
+    check_rule_names(profile(), PRESET_RESOURCE_RULES)
 
 
 def dataset_config(name):

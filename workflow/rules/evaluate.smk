@@ -59,10 +59,9 @@ rule render_split:
         "results/{dataset}/{subject}/{variant}/benchmarks/render_{split}.tsv"
     wildcard_constraints:
         split="|".join(SPLITS),
+    threads: preset_threads("render_split")
     resources:
-        gpu=1,
-        mem_mb=8000,
-        runtime=60,
+        **preset_resources("render_split"),
     shell:
         "python -m pig.stages.render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
         "--split {wildcards.split:q} --output {output:q} --profile {params.profile:q} > {log:q} 2>&1"
@@ -88,10 +87,9 @@ rule evaluate:
     wildcard_constraints:
         split="|".join(SPLITS),
         lod=r"\d+",
+    threads: preset_threads("evaluate")
     resources:
-        gpu=1,
-        mem_mb=8000,
-        runtime=60,
+        **preset_resources("evaluate"),
     shell:
         "python -m pig.stages.evaluate --capture {params.capture:q} --renders {input.renders:q} "
         "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} --profile {params.profile:q} "
@@ -121,9 +119,9 @@ rule make_tables:
         "results/tables/benchmarks/{dataset}.tsv"
     wildcard_constraints:
         dataset="|".join(config["datasets"]),
+    threads: preset_threads("make_tables")
     resources:
-        mem_mb=2000,
-        runtime=10,
+        **preset_resources("make_tables"),
     shell:
         "python -m pig.stages.tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
         "--train-logs {input.train_logs:q} --variants {params.variants:q} --output {params.output:q} > {log:q} 2>&1"

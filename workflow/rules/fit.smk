@@ -20,10 +20,9 @@ rule fit_avatar:
         "results/{dataset}/{subject}/{variant}/logs/fit.log",
     benchmark:
         "results/{dataset}/{subject}/{variant}/benchmarks/fit.tsv"
+    threads: preset_threads("fit_avatar")
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=24 * 60,
+        **preset_resources("fit_avatar"),
     shell:
         "python -m pig.stages.fit --capture {params.capture:q} --output {params.output:q} "
         "--profile {params.profile:q} --variant {wildcards.variant:q} > {log:q} 2>&1"

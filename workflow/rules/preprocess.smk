@@ -80,11 +80,9 @@ rule preprocess_capture:
         "results/{dataset}/{subject}/logs/preprocess.log",
     benchmark:
         "results/{dataset}/{subject}/benchmarks/preprocess.tsv"
-    threads: 2
+    threads: preset_threads("preprocess_capture")
     resources:
-        gpu=0,
-        mem_mb=4000,
-        runtime=60,
+        **preset_resources("preprocess_capture"),
     shell:
         "python -m pig.stages.preprocess --format {params.format:q} --input {params.root:q} --output {params.output:q} "
         "--profile {params.profile:q} --dataset {params.dataset:q} --subject {wildcards.subject:q} "

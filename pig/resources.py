@@ -1,0 +1,70 @@
+"""What each workflow job asks of the machine, per rule, from a compute profile's `resources:` section.
+
+Snakemake schedules local jobs on them (threads against `--cores`, gpu against `--resources gpu=N`) and its Slurm
+executor turns them into sbatch options: threads -> --cpus-per-task, mem_mb -> --mem, runtime -> --time,
+gpu -> --gpus, slurm_extra verbatim (e.g. `--gres=gpu:a100:1` where a cluster names its GPUs so).
+The section maps rule names, and `default` for the rules it does not name, to these keys.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any
+
+from pig.config import ConfigError, from_dict
+
+DEFAULT = "default"
+
+
+@dataclass
+class RuleResources:
+    threads: int = 1
+    mem_mb: int = 2000
+    runtime: int = 60  # minutes
+    gpu: int = 0
+    slurm_extra: str | None = None
+
+    def snakemake(self) -> dict[str, Any]:
+        """The `resources:` of a rule (threads go to its `threads:`)."""
+        values = {"mem_mb": self.mem_mb, "runtime": self.runtime, "gpu": self.gpu}
+        if self.slurm_extra:
+            values["slurm_extra"] = self.slurm_extra
+        return values
+
+
+_LEAST = {"threads": 1, "mem_mb": 1, "runtime": 1, "gpu": 0}
+
+
+def _section(profile: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    where = f"{profile.get('_path', '<profile>')}: section 'resources'"
+    section = profile.get("resources") or {}
+    if not isinstance(section, dict):
+        raise ConfigError(f"{where}: expected a mapping of rule names to resources, found {section!r}")
+    return section, where
+
+
+def rule_resources(profile: dict[str, Any], rule: str) -> RuleResources:
+    """Resources of `rule`: its entry in the section over the `default` entry over RuleResources' defaults."""
+    section, where = _section(profile)
+    values = {}
+    for name in (DEFAULT, rule):
+        entry = section.get(name) or {}
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where}.{name}: expected a mapping of {[f.name for f in fields(RuleResources)]}, "
+                              f"found {entry!r}")
+        from_dict(RuleResources, entry, f"{where}.{name}")  # names the entry that holds a wrong key or type
+        values.update(entry)
+    resources = from_dict(RuleResources, values, f"{where}.{rule}")
+    for key, least in _LEAST.items():
+        if getattr(resources, key) < least:
+            source = rule if key in (section.get(rule) or {}) else DEFAULT
+            raise ConfigError(f"{where}.{source}.{key}: expected at least {least}, found {getattr(resources, key)}")
+    return resources
+
+
+def check_rule_names(profile: dict[str, Any], rules: set[str]) -> None:
+    """Refuse entries of the section that name no rule among `rules` (those that take their resources from it)."""
+    section, where = _section(profile)
+    unknown = sorted(set(section) - set(rules) - {DEFAULT})
+    if unknown:
+        raise ConfigError(f"{where}: no rule named {unknown} takes its resources from here; "
+                          f"expected `{DEFAULT}` or some of {sorted(rules)}")

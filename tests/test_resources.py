@@ -1,0 +1,124 @@
+"""Job resources per rule from the compute profile's `resources:` section (pig.resources, workflow/rules/common.smk)."""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import sys
+from pathlib import Path
+
+import pytest
+import snakemake.cli
+import yaml
+
+import pig.data.formats  # noqa: F401  (imported by the workflow at DAG time; loaded once here for the forks)
+import pig.data.synthetic  # noqa: F401
+from pig.config import ConfigError, load_profile
+from pig.resources import RuleResources, check_rule_names, rule_resources
+
+REPO = Path(__file__).resolve().parent.parent
+PRESET_RULES = {"preprocess_capture", "fit_avatar", "render_split", "evaluate", "make_tables", "animate"}
+
+
+def profile(section) -> dict:
+    return {"_path": "my.yaml", "resources": section}
+
+
+def test_rule_entry_over_default_over_built_in():
+    section = {"default": {"mem_mb": 3000, "runtime": 20}, "fit_avatar": {"runtime": 600, "gpu": 1}}
+    assert rule_resources(profile(section), "fit_avatar") == RuleResources(threads=1, mem_mb=3000, runtime=600, gpu=1)
+    assert rule_resources(profile(section), "evaluate") == RuleResources(mem_mb=3000, runtime=20)
+    assert rule_resources({}, "evaluate") == RuleResources()
+
+
+def test_snakemake_resources_carry_slurm_extra_only_when_set():
+    assert RuleResources(gpu=1).snakemake() == {"mem_mb": 2000, "runtime": 60, "gpu": 1}
+    extra = RuleResources(slurm_extra="--gres=gpu:a100:1").snakemake()
+    assert extra["slurm_extra"] == "--gres=gpu:a100:1"
+
+
+@pytest.mark.parametrize("section, message", [
+    ({"fit_avatar": {"mem": 100}}, r"my\.yaml: section 'resources'\.fit_avatar: unknown key\(s\) \['mem'\]"),
+    ({"default": {"runtime": "1h"}}, r"my\.yaml: section 'resources'\.default\.runtime: expected an integer, "
+                                     r"found the string '1h'"),
+    ({"default": {"gpu": -1}}, r"my\.yaml: section 'resources'\.default\.gpu: expected at least 0, found -1"),
+    ({"default": {"threads": 4}, "fit_avatar": {"threads": 0}},
+     r"my\.yaml: section 'resources'\.fit_avatar\.threads: expected at least 1, found 0"),
+    ({"fit_avatar": 16000}, r"my\.yaml: section 'resources'\.fit_avatar: expected a mapping of \['threads', "),
+    ([1, 2], r"my\.yaml: section 'resources': expected a mapping of rule names to resources, found \[1, 2\]"),
+])
+def test_bad_entries_name_file_rule_and_key(section, message):
+    with pytest.raises(ConfigError, match=message):
+        rule_resources(profile(section), "fit_avatar")
+
+
+def test_unknown_rule_names_are_refused():
+    check_rule_names(profile({"default": {}, "fit_avatar": {}}), PRESET_RULES)
+    with pytest.raises(ConfigError, match=r"my\.yaml: section 'resources': no rule named \['fit'\] takes its resources "
+                                          r"from here; expected `default` or some of \['animate', "):
+        check_rule_names(profile({"fit": {"gpu": 1}}), PRESET_RULES)
+
+
+@pytest.mark.parametrize("name", ["test", "cpu-demo", "paper"])
+def test_shipped_profiles(name):
+    """Every preset's section loads for every rule; CPU presets ask for no GPU (the Slurm test's node has
+    none), the paper preset's GPU stages one GPU each."""
+    preset = load_profile(name)
+    check_rule_names(preset, PRESET_RULES)
+    resources = {rule: rule_resources(preset, rule) for rule in PRESET_RULES}
+    gpus = {rule for rule, r in resources.items() if r.gpu}
+    assert gpus == (set() if name != "paper" else {"fit_avatar", "render_split", "evaluate", "animate"})
+    assert all(r.gpu <= 1 for r in resources.values())
+
+
+def _snakemake_child(argv: list[str], log: Path) -> None:
+    stream = open(log, "w", buffering=1)
+    os.dup2(stream.fileno(), 1)
+    os.dup2(stream.fileno(), 2)
+    sys.stdout = sys.stderr = stream
+    snakemake.cli.main(argv)
+
+
+def dry_run(tmp_path: Path, resources: dict) -> tuple[int, str]:
+    """(exit code, output) of a dry run of the default target with the test profile plus `resources`, in a forked
+    child of this process, which has already imported what the workflow imports at DAG time."""
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "config").symlink_to(REPO / "config")
+    preset = yaml.safe_load((REPO / "config" / "profiles" / "test.yaml").read_text())
+    preset["resources"] = resources
+    (tmp_path / "preset.yaml").write_text(yaml.safe_dump(preset))
+    argv = ["--dry-run", "--cores", "4", "--snakefile", str(REPO / "Snakefile"), "--directory", str(work),
+            "--config", f"profile={tmp_path / 'preset.yaml'}"]
+    log = tmp_path / "snakemake.out"
+    child = multiprocessing.get_context("fork").Process(target=_snakemake_child, args=(argv, log))
+    child.start()
+    child.join(timeout=120)
+    return child.exitcode, log.read_text()
+
+
+def job_settings(output: str, rule: str) -> dict[str, str]:
+    """The threads and resources a dry run printed for the first job of `rule`."""
+    block = output.split(f"rule {rule}:\n", 1)[1].splitlines()
+    block = block[:next(i for i, line in enumerate(block) if not line.startswith("    "))]
+    lines = dict(line.strip().split(": ", 1) for line in block)
+    settings = dict(item.split("=", 1) for item in lines["resources"].split(", "))
+    return {"threads": lines.get("threads", "1"), **settings}
+
+
+def test_workflow_jobs_take_the_profile_resources(tmp_path):
+    code, output = dry_run(tmp_path, {"default": {"mem_mb": 900, "runtime": 5},
+                                      "fit_avatar": {"threads": 3, "mem_mb": 1234, "runtime": 7, "gpu": 1,
+                                                     "slurm_extra": "--gres=gpu:a100:1"}})
+    assert code == 0, output[-3000:]
+    fit = job_settings(output, "fit_avatar")
+    assert {key: fit[key] for key in ("threads", "mem_mb", "runtime", "gpu", "slurm_extra")} == {
+        "threads": "3", "mem_mb": "1234", "runtime": "7", "gpu": "1", "slurm_extra": "--gres=gpu:a100:1"}
+    tables = job_settings(output, "make_tables")
+    assert (tables["threads"], tables["mem_mb"], tables["runtime"], tables["gpu"]) == ("1", "900", "5", "0")
+    assert "slurm_extra" not in tables
+
+
+def test_workflow_refuses_a_resources_entry_no_rule_reads(tmp_path):
+    code, output = dry_run(tmp_path, {"fit": {"gpu": 1}})
+    assert code != 0
+    assert f"{tmp_path / 'preset.yaml'}: section 'resources': no rule named ['fit'] takes its resources" in output
