@@ -109,6 +109,19 @@ def test_region_labels_of_a_hand_built_scene(garment_depth):
     assert (labels[covered_by_both] == (GARMENT if garment_depth < 4 else BODY)).all()
 
 
+@pytest.mark.parametrize("size", [(1, 1), (3, 2)])
+def test_region_labels_and_psnr_of_tiny_images(size):
+    camera = _camera(*size, focal=2.0)
+    body = np.array([[-1.13, -1.07, 4.0], [1.21, -0.93, 4.0], [0.05, 1.17, 4.0]])
+    surfaces = [(body, np.array([[0, 1, 2]])), (np.zeros((0, 3)), np.zeros((0, 3), np.int64))]
+    labels = region_labels(surfaces, camera)
+    np.testing.assert_array_equal(labels, _expected_labels(camera, [(body, BODY)]))
+    assert (labels == BODY).any()
+    x = torch.full((1, 3, size[1], size[0]), 0.5)
+    psnr = region_psnr(x, x + 0.1, torch.from_numpy(labels)[None])[0]
+    assert psnr[BODY] == pytest.approx(20.0) and math.isnan(psnr[GARMENT])
+
+
 def test_region_labels_follow_the_camera_pose():
     """A camera turned 180 degrees about y looks from the other side: the same scene, mirrored in x."""
     body = np.array([[-1.13, -1.07, 4.0], [1.21, -0.93, 4.0], [0.05, 1.17, 4.0]])
@@ -384,7 +397,7 @@ def test_evaluate_adds_ground_truth_metrics_only_with_true_meshes(rendered, tmp_
     cam, frame = loaded.views("novel_view")[0]
     labels = RegionLabeller(TrueMeshes.load(capture / GT_MESHES), loaded.cameras)(cam, frame)
     mask = loaded.mask(cam, frame) > 0
-    assert (mask & (labels > 0)).sum() / (mask | (labels > 0)).sum() > 0.85
+    assert (mask & (labels > 0)).sum() / (mask | (labels > 0)).sum() > 0.97  # 0.98..0.996 over its views
 
     real, real_renders = out["real"]
     assert not (real_renders / "lod0" / SPLATS).exists() and (renders / "lod0" / SPLATS).exists()
