@@ -4,6 +4,10 @@ Follows the paper's protocol (Section 4.2): full frame, black background, ground
 black. Writes metrics/{split}_lod{l}.csv (per image) and metrics/{split}_lod{l}.json (summary, with the render
 stage's timing and its note on the avatar's fit, `fit_note`). Views are read one batch at a time and FID keeps
 running feature statistics, so memory does not grow with the split.
+
+A capture with true meshes (synthetic, gt_meshes.npz) also gets PSNR/SSIM per region (garment, body, background;
+pig.metrics.regions) per image and in the summary, and the geometry error and correspondence drift of the render
+stage's splats (lod{l}/splats.npz; pig.metrics.geometry) in the summary. Real captures have none of these columns.
 """
 from __future__ import annotations
 
@@ -19,10 +23,14 @@ import pandas as pd
 import torch
 
 from pig.config import load_profile, load_section, resolve_device
+from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
+from pig.data.raw import CaptureError
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
+from pig.metrics.geometry import ground_truth_geometry
 from pig.metrics.lpips import LPIPS
 from pig.metrics.psnr import psnr
-from pig.metrics.ssim import ssim
+from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssim
+from pig.metrics.ssim import ssim, ssim_map
 from pig.metrics.weights import WeightsMissing
 from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, run_cli
@@ -42,6 +50,9 @@ class EvaluateConfig:
     batch_size: int = 8
     device: str = "auto"  # "auto": CUDA when available
     timing_frames: int = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
+    # Frames of a split, evenly spaced with its first and last, on which a synthetic capture's geometry error is
+    # measured: each costs an exact nearest-surface query per splat. The drift follows all frames.
+    geometry_frames: int = 4
 
 
 # The render stage passes on the note of the avatar's fit (pig.avatar.losses.fit_note: the LPIPS term of Eq. 15
@@ -66,10 +77,20 @@ def _load_metric(build, what: str) -> tuple[torch.nn.Module | None, str]:
         return None, f"{what} is NaN: {str(err).split(' (searched')[0]}"
 
 
+REGION_KEYS = [f"{metric}_{region}" for metric in ("psnr", "ssim") for region in ("garment", "body", "background")]
+
+
+def _mean_of_present(values: pd.Series) -> float:
+    """Mean over the images where the value exists (a region can be absent from a view); NaN when none has it."""
+    present = values.dropna()
+    return float(present.mean()) if len(present) else math.nan
+
+
 def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lpips_net, inception, device,
-                   fid_note: str = "") -> tuple[pd.DataFrame, dict]:
+                   fid_note: str = "", labeller: RegionLabeller | None = None) -> tuple[pd.DataFrame, dict]:
     """Per-image metrics (DataFrame) and summary (dict) of one split at one LOD, over the split's views that
-    have ground truth. Without `inception` the FID is NaN with `fid_note`."""
+    have ground truth. Without `inception` the FID is NaN with `fid_note`. With a `labeller` (true meshes), also
+    PSNR/SSIM per region (REGION_KEYS)."""
     # Batches never mix image sizes (DNA-Rendering's two camera groups differ).
     by_size: dict[tuple[int, int], list] = {}
     for c, f in capture.views(split):
@@ -85,13 +106,20 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
         y = torch.from_numpy(np.ascontiguousarray(truths, dtype=np.float32)).permute(0, 3, 1, 2).to(device)
         blank = torch.zeros_like(y)
         with torch.no_grad():
+            similarity = ssim_map(x, y)
             values = {
                 "psnr": psnr(x, y),
-                "ssim": ssim(x, y, reduction="none"),
+                "ssim": similarity.flatten(1).mean(1),  # = ssim(x, y, reduction="none")
                 "lpips": lpips_net(x, y) if lpips_net is not None else torch.full((len(batch),), math.nan),
                 "psnr_blank": psnr(blank, y),
                 "ssim_blank": ssim(blank, y, reduction="none"),
             }
+            if labeller is not None:
+                labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in batch])).to(device)
+                region_values = {"psnr": region_psnr(x, y, labels), "ssim": region_ssim(similarity, labels)}
+                for metric, per_region in region_values.items():
+                    for region, code in REGIONS.items():
+                        values[f"{metric}_{region}"] = per_region[:, code]
             if inception is not None:
                 fake_features.update(inception(x).double().cpu().numpy())
                 real_features.update(inception(y).double().cpu().numpy())
@@ -99,6 +127,8 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
             rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
     table = pd.DataFrame(rows)
     summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
+    if labeller is not None:
+        summary.update({key: _mean_of_present(table[key]) for key in REGION_KEYS})
     summary["images"] = len(table)
     fid = math.nan
     if inception is not None:
@@ -138,10 +168,20 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     lpips_net, lpips_note = _load_metric(
         lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights).to(device), "LPIPS")
     inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
+    truth = TrueMeshes.load(capture_dir / GT_MESHES) if (capture_dir / GT_MESHES).is_file() else None
+    labeller = None
+    if truth is not None:
+        truth.require_frames(capture.split[split]["frames"], f"split {split!r}")
+        labeller = RegionLabeller(truth, capture.cameras)
+        for level in levels:  # before any work: renders of an older render stage lack them
+            SplatTrack.require(split_dir / f"lod{level}" / SPLATS)
     written = []
     for level in levels:
         level_dir = split_dir / f"lod{level}"
-        table, summary = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device, fid_note)
+        table, summary = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device, fid_note,
+                                        labeller)
+        if truth is not None:
+            summary.update(ground_truth_geometry(_splat_track(level_dir, capture, split), truth, cfg.geometry_frames))
         timing = read_record(level_dir / "timing.json", "the render stage's timing record (splats, model_mb, fps, device)")
         timing.setdefault("fit_note", UNRECORDED_FIT_NOTE)
         summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, **timing)
@@ -152,10 +192,26 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         print(f"[evaluate] {split} lod{level}: PSNR {summary['psnr']:.2f} SSIM {summary['ssim']:.4f} "
               f"(blank {summary['psnr_blank']:.2f} / {summary['ssim_blank']:.4f}) FID {summary['fid']:.2f} "
               f"over {summary['images']} images")
+        if truth is not None:
+            print(f"[evaluate] {split} lod{level}: PSNR garment {summary['psnr_garment']:.2f} body "
+                  f"{summary['psnr_body']:.2f} background {summary['psnr_background']:.2f}; accuracy garment "
+                  f"{summary['accuracy_mm_garment']:.1f} body {summary['accuracy_mm_body']:.1f} mm, completeness "
+                  f"garment {summary['completeness_mm_garment']:.1f} body {summary['completeness_mm_body']:.1f} mm, "
+                  f"drift {summary['drift_mm']:.1f} mm (last frame {summary['drift_mm_last']:.1f})")
         for note in (summary["fid_note"], summary["fit_note"]):
             if note:
                 print(f"[evaluate] {split} lod{level}: {note}")
     return written
+
+
+def _splat_track(level_dir: Path, capture, split: str) -> SplatTrack:
+    """The render stage's splat track of one LOD, which must cover the split's frames."""
+    track = SplatTrack.load(level_dir / SPLATS)
+    frames = sorted(int(f) for f in capture.split[split]["frames"])
+    if track.frames.tolist() != frames:
+        raise CaptureError(f"{level_dir / SPLATS}: frames {track.frames.tolist()[:8]} are not the frames of split "
+                           f"{split!r} ({frames[:8]}...); the renders are of another split or capture: rerun render")
+    return track
 
 
 def main(argv: list[str] | None = None) -> int:

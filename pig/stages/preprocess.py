@@ -4,6 +4,7 @@ Writes the directory `pig.data.capture.Capture.load` reads (FORMATS.md layouts i
 into a work folder renamed at the end, after the projection sanity check passed; no paper equation. Training
 views are JPEG (4:4:4) and held-out views PNG by default, masks 1-bit PNG (benchmarks/encoding.py measured the
 choice). A killed or failed run resumes: a rerun with the same settings keeps the images already written.
+A synthetic capture's true meshes (gt_meshes.npz beside the raw data) are checked and copied along unchanged.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from pig.body.model import BodyModel, BodyModelError
 from pig.config import ConfigError, load_profile, load_section, load_yaml, named_config
 from pig.data.capture import MASK_SUFFIX
 from pig.data.formats import FORMATS, capture_format, open_capture
+from pig.data.ground_truth import GT_MESHES, TrueMeshes
 from pig.data.images import read_image
 from pig.data.projection_check import Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
@@ -253,6 +255,10 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         params.save(work / "smplx.npz", frame_ids=frames)
         write_json(work / "split.json", split)
         shutil.copyfile(body_model, work / "body_model.npz")
+        truth = Path(raw.source) / GT_MESHES
+        if truth.is_file():  # a synthetic capture's true meshes, for the evaluate stage's ground-truth metrics
+            TrueMeshes.load(truth).require_frames(frames, f"the capture's splits ({split_source})")
+            shutil.copyfile(truth, work / GT_MESHES)
 
         check_start = time.perf_counter()
         check = check_projection({c: views[c] for c in checked}, checked,

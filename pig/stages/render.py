@@ -1,5 +1,8 @@
 """Render stage: every test camera and frame of one split at every LOD, as PNG plus alpha/depth OpenEXR.
 
+A capture with true meshes (synthetic, gt_meshes.npz) also gets each LOD's splat centres and opacities over the
+split's frames (lod{l}/splats.npz) for the evaluate stage's geometry error and correspondence drift.
+
 Novel poses follow the paper (Section 4.1): the nearest training timestep by summed per-joint geodesic
 distance feeds gamma(t) (Eq. 6) while the query pose drives the transport (Eqs. 2-3). Frames go through
 pig.avatar.driver, which evaluates the field and the refiner once per avatar. Also times the per-frame
@@ -19,6 +22,7 @@ import torch
 from pig.avatar.driver import AvatarDriver
 from pig.config import load_profile, load_section, resolve_device
 from pig.data.exr import write_exr
+from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
 from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
@@ -88,11 +92,17 @@ class SplitRenderer:
         return self.driver.nearest_timestep(pose.full_pose[0]), pose
 
     @torch.no_grad()
-    def render(self, frame: int, lod: int, first_view_only: bool = False):
-        """Yields (camera name, RenderResult of that group, index in the group) for every camera."""
+    def gaussians(self, frame: int, lod: int) -> list[torch.Tensor]:
+        """(means, quats, scales, opacities, sh) of the avatar at a capture frame, float32."""
         timestep, pose = self.timestep_and_pose(frame)
         full_pose, transl = (None, None) if pose is None else (pose.full_pose[0], pose.transl[0])
-        gaussians = [t.float() for t in self.driver.gaussians(lod, full_pose, transl, timestep)]
+        return [t.float() for t in self.driver.gaussians(lod, full_pose, transl, timestep)]
+
+    @torch.no_grad()
+    def render(self, frame: int, lod: int, first_view_only: bool = False, gaussians: list[torch.Tensor] | None = None):
+        """Yields (camera name, RenderResult of that group, index in the group) for every camera; `gaussians` of
+        `frame` and `lod` may be given when the caller already has them."""
+        gaussians = gaussians if gaussians is not None else self.gaussians(frame, lod)
         for group in self.groups[:1] if first_view_only else self.groups:
             views = slice(0, 1) if first_view_only else slice(None)
             result = render_gaussians(
@@ -138,17 +148,27 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     note = fit_note(loss_terms(checkpoint)["lpips"])  # passed on to the evaluate stage's summaries and the tables
     bake_preconditioning(model)
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
+    track_splats = (capture_dir / GT_MESHES).is_file()  # for the evaluate stage's geometry error and drift
     levels = range(model.num_levels)
     with build_dir(output, "render") as tmp, \
             progress_bar(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
         for lod in levels:
             level_dir = tmp / f"lod{lod}"
+            centres, opacities = [], []
             for frame in frames:
-                for cam, result, c in renderer.render(frame, lod):
+                gaussians = renderer.gaussians(frame, lod)
+                if track_splats:
+                    centres.append(gaussians[0].cpu().numpy())
+                    opacities.append(gaussians[3].cpu().numpy())
+                for cam, result, c in renderer.render(frame, lod, gaussians=gaussians):
                     write_png(level_dir / cam / f"{frame:08d}.png", result.color[c].cpu().numpy())
                     write_exr(level_dir / cam / f"{frame:08d}.exr",
                               {"A": result.alpha[c, ..., 0].cpu().numpy(), "Z": result.depth[c, ..., 0].cpu().numpy()})
                 bar.update()
+            if track_splats:
+                order = np.argsort(frames)
+                SplatTrack(np.asarray(frames)[order], np.stack(centres)[order], np.stack(opacities)[order]).save(
+                    level_dir / SPLATS)
             seconds = renderer.seconds_per_frame(frames, lod, cfg.timing_frames)
             write_json(level_dir / "timing.json", {
                 "splats": model.level_sizes[lod],
