@@ -198,7 +198,7 @@ GROUND_TRUTH_KEYS = ("psnr_garment", "ssim_garment", "psnr_body", "ssim_body", "
 
 def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capture: Path) -> dict:
     """Render and evaluate novel view and novel pose at every LOD; {split: {lod: {psnr, ssim, images}}} + iterations."""
-    from pig.stages.evaluate import main as evaluate
+    from pig.stages.evaluate import main as evaluate, render_levels
     from pig.stages.render import main as render
     from pig.stages._io import read_record
 
@@ -211,8 +211,9 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
         metrics = args.workdir / f"metrics_{name}"
         render(["--checkpoint", str(fit_dir / "avatar.pt"), "--capture", str(capture), "--split", split, "--output", str(renders),
                 "--profile", str(profile_path), "--overwrite"])
+        finest = ["--lod", str(max(render_levels(renders)))] if args.finest_only else []
         evaluate(["--capture", str(capture), "--renders", str(renders), "--split", split, "--output", str(metrics),
-                  "--profile", str(profile_path), "--overwrite"])
+                  "--profile", str(profile_path), "--overwrite", *finest])
         out[split] = {}
         for record in sorted(metrics.glob(f"{split}_lod*.json")):
             summary = read_record(record, "evaluate summary")
@@ -261,6 +262,7 @@ def main(argv=None) -> int:
     parser.add_argument("--budget", type=float, default=None, help="fixed-budget mode: seconds of training per variant")
     parser.add_argument("--eval-every", type=int, default=None, help="held-out evaluation every N iterations (parity)")
     parser.add_argument("--plot", type=Path, default=None, help="with --eval-every: plot of the held-out PSNR curves")
+    parser.add_argument("--finest-only", action="store_true", help="budget mode: evaluate the finest LOD only")
     parser.add_argument("--warm-compile", type=int, default=0, help="untimed fit of N iterations before the variants")
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
@@ -327,12 +329,13 @@ def main(argv=None) -> int:
         print("| sum of phases | " + " | ".join(f"{sum(r['phases_ms'].get(n, 0.0) for n in top):.1f}" for r in results) + " |")
     if args.budget:
         levels = sorted({lod for r in results for lod in r["budget"]["novel_view"]})
+        cell = lambda b, split, l: f"{b[split][l]['psnr']:.2f} / {b[split][l]['ssim']:.4f}" if l in b[split] else "-"
         print(f"\nFixed budget {args.budget:.0f} s of training: PSNR dB / SSIM per LOD (0 = coarsest)")
         print("| variant | iterations | " + " | ".join(f"{split} lod{l}" for split in ("novel_view", "novel_pose") for l in levels) + " |")
         print("|---|---|" + "---|" * (2 * len(levels)))
         for r in results:
             b = r["budget"]
-            cells = [f"{b[split][l]['psnr']:.2f} / {b[split][l]['ssim']:.4f}" for split in ("novel_view", "novel_pose") for l in levels]
+            cells = [cell(b, split, l) for split in ("novel_view", "novel_pose") for l in levels]
             print(f"| {r['name']} | {b['iterations']} | " + " | ".join(cells) + " |")
         if any("psnr_garment" in r["budget"]["novel_view"][max(r["budget"]["novel_view"])] for r in results):
             for split in ("novel_view", "novel_pose"):
