@@ -4,7 +4,8 @@ Most tests work on a fake THuman4 subject whose outputs all exist and are record
 (`--touch`), in a folder whose path, raw data, profile, dataset YAML and subject name hold spaces, and
 assert which jobs a dry run schedules after one change: a profile value, the dataset split, a raw image
 or mask, `avatar.levels`. Snakemake runs in a forked child of the test process, which has already
-imported what the workflow imports at DAG time (torch among them): a dry run takes ~2 s instead of ~8 s.
+imported what the workflow imports at DAG time: a dry run takes ~2 s instead of ~3 s. Building the DAG imports
+no torch (a test checks it in a fresh interpreter).
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import multiprocessing
 import os
 import shlex
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -238,6 +240,29 @@ def test_evaluate_names_changed_levels_as_the_likely_cause(small_capture, tmp_pa
     with pytest.raises(FileNotFoundError, match=r"LOD\(s\) \[2\] were not rendered; found lod\[0, 1\].*avatar\.levels"):
         evaluate_split(small_capture, renders, "novel_view", tmp_path / "metrics", EvaluateConfig(device="cpu"), [2])
     assert not (tmp_path / "metrics").exists()
+
+
+# Runs Snakemake's command line and reports whether anything imported torch meanwhile.
+DAG_PROBE = """
+import sys
+import snakemake.cli
+try:
+    snakemake.cli.main(sys.argv[1:])
+except SystemExit as done:
+    print("exit", done.code, "torch", "torch" in sys.modules)
+"""
+
+
+def test_dag_building_imports_no_torch(recorded):
+    """A dry run of the default target (the THuman4 reader's file checks included) and of the synthetic capture
+    (the generator's settings) in a fresh interpreter: torch costs ~3 s per `snakemake` start, jobs import it."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    for target in ("all", "results/synthetic/subject00/capture/report.json"):
+        done = subprocess.run([sys.executable, "-c", DAG_PROBE, target, "--dry-run", "--forceall", "--snakefile",
+                               str(REPO / "Snakefile"), "--directory", str(recorded)],
+                              capture_output=True, text=True, timeout=120, env=env)
+        assert done.stdout.splitlines()[-1] == "exit 0 torch False", done.stdout[-3000:] + done.stderr[-3000:]
+        assert "rule preprocess_capture:" in done.stdout
 
 
 def test_animate_examples_render_a_turntable_and_the_shipped_demo_motion(recorded):

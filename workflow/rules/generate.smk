@@ -1,7 +1,7 @@
 # Generate the built-in synthetic subject (THuman4 layout + ground-truth meshes) under the synthetic
 # dataset's root; its sizes come from the profile's `synthetic` section (pig.data.synthetic).
 from pig.config import load_section
-from pig.data.synthetic import SyntheticConfig
+from pig.data.synthetic_config import SyntheticConfig
 
 
 def synthetic_config():
