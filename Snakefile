@@ -6,10 +6,13 @@ from snakemake.utils import validate
 configfile: "config/config.yaml"
 
 
+include: "workflow/rules/common.smk"
+
+
+check_renamed_config_keys()
 validate(config, "config/schema/config.schema.yaml")
 
 
-include: "workflow/rules/common.smk"
 include: "workflow/rules/generate.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/fit.smk"

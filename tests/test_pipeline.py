@@ -1,5 +1,5 @@
 """The evaluation end of the pipeline: EXR round trip, table layout from known summaries, and the whole
-workflow through Snakemake on the tiny `test` profile (generate -> preprocess -> fit -> render -> evaluate -> tables)."""
+workflow through Snakemake on the tiny `test` preset (generate -> preprocess -> fit -> render -> evaluate -> tables)."""
 from __future__ import annotations
 
 import json
@@ -17,7 +17,7 @@ from pig.data.exr import read_exr, write_exr
 from pig.stages.tables import BLANK_ROW, make_tables
 
 REPO = Path(__file__).resolve().parent.parent
-# The test profile scores LPIPS with AlexNet; the tables name the backbone in the header.
+# The test preset scores LPIPS with AlexNet; the tables name the backbone in the header.
 METRIC_COLUMNS = [f"{s}_{m}" for s in ("novel_view", "novel_pose") for m in ("psnr", "ssim", "lpips_alex", "fid")]
 
 
@@ -90,20 +90,20 @@ def test_tables_reject_missing_variant(tmp_path):
 
 @pytest.mark.slow
 def test_workflow_end_to_end(tmp_path):
-    """`snakemake` on the test profile from an empty working directory to the synthetic tables; the working
-    directory and the profile's path hold spaces, which every rule's command must quote."""
+    """`snakemake` on the test preset from an empty working directory to the synthetic tables; the working
+    directory and the preset's path hold spaces, which every rule's command must quote."""
     if shutil.which("snakemake") is None:
         pytest.skip("snakemake is not on PATH")
     work = tmp_path / "work dir"
     work.mkdir()
     (work / "config").symlink_to(REPO / "config")
-    # The test profile with a longer fit: its 40 iterations are sized for the fit tests, not for a
+    # The test preset with a longer fit: its 40 iterations are sized for the fit tests, not for a
     # trained avatar; 200 take ~20 s on two quiet cores.
-    profile = yaml.safe_load((REPO / "config" / "profiles" / "test.yaml").read_text())
-    profile["fit"].update(iterations=200, eval_every=100)
-    (work / "pipeline profile.yaml").write_text(yaml.safe_dump(profile))
+    preset = yaml.safe_load((REPO / "config" / "presets" / "test.yaml").read_text())
+    preset["fit"].update(iterations=200, eval_every=100)
+    (work / "pipeline preset.yaml").write_text(yaml.safe_dump(preset))
     command = ["snakemake", "results/tables/synthetic.csv", "--snakefile", str(REPO / "Snakefile"),
-               "--directory", str(work), "--cores", "2", "--config", f"profile={work / 'pipeline profile.yaml'}"]
+               "--directory", str(work), "--cores", "2", "--config", f"preset={work / 'pipeline preset.yaml'}"]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600)
     logs = "\n".join(f"== {p}\n{p.read_text()[-2000:]}" for p in sorted(work.glob("results/**/logs/*.log")))
     assert done.returncode == 0, f"{done.stdout[-3000:]}\n{done.stderr[-5000:]}\n{logs}"

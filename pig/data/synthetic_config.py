@@ -13,7 +13,7 @@ class SyntheticError(ValueError):
 
 @dataclass
 class SyntheticConfig:
-    """Profile section `synthetic`."""
+    """Preset section `synthetic`."""
 
     cameras: int = 12
     frames: int = 24

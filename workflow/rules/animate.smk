@@ -21,10 +21,10 @@ rule animate:
         directory("results/{dataset}/{subject}/{variant}/animate/{clip}"),
     params:
         motion=lambda wildcards: " ".join(shlex.quote(a) for a in motion_argument(wildcards)),
-        profile=PROFILE,
+        preset=config["preset"],
         options=ANIMATE_OPTIONS,
         # Not used by the command: a change reruns the rule (params trigger).
-        settings=profile_settings("rasterizer"),
+        settings=preset_settings("rasterizer"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/animate_{clip}.log",
     threads: preset_threads("animate")
@@ -32,7 +32,7 @@ rule animate:
         **preset_resources("animate"),
     shell:
         "python -m pig.stages.animate --checkpoint {input.checkpoint:q} --output {output:q} {params.motion} "
-        "--profile {params.profile:q} {params.options} > {log:q} 2>&1"
+        "--preset {params.preset:q} {params.options} > {log:q} 2>&1"
 
 
 rule animate_examples:

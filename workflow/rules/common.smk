@@ -1,4 +1,4 @@
-# Shared helpers: dataset lookup, profile, paths, and the settings hashes that make Snakemake rerun a rule when
+# Shared helpers: dataset lookup, preset, paths, and the settings hashes that make Snakemake rerun a rule when
 # what its stage reads changes. Every rule calls a `python -m pig.stages.*` CLI.
 import hashlib
 import json
@@ -6,39 +6,47 @@ import os
 from functools import cache
 from pathlib import Path
 
+from snakemake.exceptions import WorkflowError
+
 from pig.avatar.variants import variant_overrides
-from pig.config import load_profile, load_yaml
+from pig.config import load_preset, load_yaml
 from pig.resources import check_rule_names, rule_resources
 
-PROFILE = config["profile"]
+
+def check_renamed_config_keys():
+    """Refuses the config key `profile`, which named the compute preset before `preset` did."""
+    if "profile" in config:
+        raise WorkflowError(
+            f"config key `profile` is now `preset` (compute presets are config/presets/*.yaml, apart from "
+            f"Snakemake's profiles): use --config preset={config['profile']} or `preset:` in your config file")
 
 
 @cache
-def profile():
-    """The profile's mapping, read once per Snakemake run so that every rule sees the same settings."""
-    return load_profile(PROFILE)
+def preset():
+    """The preset's mapping, read once per Snakemake run so that every rule sees the same settings."""
+    return load_preset(config["preset"])
 
 
-# Rules whose threads and resources come from the profile's `resources:` section (pig.resources).
+# Rules whose threads and resources come from the preset's `resources:` section (pig.resources).
 PRESET_RESOURCE_RULES = set()
 
 
 def preset_threads(name):
-    """Threads from the profile's `resources:` section, for the rule called `name`."""
+    """Threads from the preset's `resources:` section, for the rule called `name`."""
     PRESET_RESOURCE_RULES.add(name)
-    return rule_resources(profile(), name).threads
+    return rule_resources(preset(), name).threads
 
 
 def preset_resources(name):
-    """Resources (mem_mb, runtime, gpu, slurm_extra) from the profile's `resources:` section, for the rule called
+    """Resources (mem_mb, runtime, gpu, slurm_extra) from the preset's `resources:` section, for the rule called
     `name`."""
     PRESET_RESOURCE_RULES.add(name)
-    return rule_resources(profile(), name).snakemake()
+    return rule_resources(preset(), name).snakemake()
 
 
 def check_preset_resources():
-    """Once all rules exist, refuses entries of the profile's `resources:` section that no rule reads (a typo)."""
-    check_rule_names(profile(), PRESET_RESOURCE_RULES)
+    """Once all rules exist, refuses entries of the preset's `resources:` section that no rule reads (a typo)."""
+    check_rule_names(preset(), PRESET_RESOURCE_RULES)
 
 
 def dataset_config(name):
@@ -86,11 +94,11 @@ def settings_hash(settings):
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def profile_settings(*sections, variant=None):
-    """Hash of the profile sections a stage reads, with all overrides of `variant` where the stage applies them."""
-    settings = {section: profile().get(section) for section in sections}
+def preset_settings(*sections, variant=None):
+    """Hash of the preset sections a stage reads, with all overrides of `variant` where the stage applies them."""
+    settings = {section: preset().get(section) for section in sections}
     if variant is not None:
-        settings["variant"] = variant_overrides(profile(), variant)
+        settings["variant"] = variant_overrides(preset(), variant)
     return settings_hash(settings)
 
 

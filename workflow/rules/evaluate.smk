@@ -11,9 +11,9 @@ OTHER_TABLES = ["ablation", "noise", "regions"]
 
 
 def lod_levels(variant):
-    """LOD indices 0..L-1 of a variant: the profile's `avatar.levels` after the variant's overrides."""
-    overrides = variant_overrides(profile(), variant).get("avatar")
-    return list(range(load_section(profile(), "avatar", AvatarConfig, overrides).levels))
+    """LOD indices 0..L-1 of a variant: the preset's `avatar.levels` after the variant's overrides."""
+    overrides = variant_overrides(preset(), variant).get("avatar")
+    return list(range(load_section(preset(), "avatar", AvatarConfig, overrides).levels))
 
 
 def table_runs(dataset, table):
@@ -23,7 +23,7 @@ def table_runs(dataset, table):
     if table == "regions" and not dataset_config(dataset).get("generated", False):
         raise ValueError(f"{target}: region metrics need the ground-truth meshes that only generated datasets have "
                          f"(`generated: true`, e.g. synthetic); {config['datasets'][dataset]} is a real capture")
-    names = table_variants(profile(), config["variants"], table)
+    names = table_variants(preset(), config["variants"], table)
     if not names:
         raise ValueError(f"{target}: none of the variants {config['variants']} belongs to the {table} table; "
                          "name them with --config 'variants=[pig,...]'")
@@ -50,9 +50,9 @@ rule render_split:
         directory("results/{dataset}/{subject}/{variant}/renders/{split}"),
     params:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
-        profile=PROFILE,
+        preset=config["preset"],
         # Not used by the command: a change reruns the rule (params trigger).
-        settings=profile_settings("evaluate", "rasterizer"),
+        settings=preset_settings("evaluate", "rasterizer"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/render_{split}.log",
     benchmark:
@@ -64,7 +64,7 @@ rule render_split:
         **preset_resources("render_split"),
     shell:
         "python -m pig.stages.render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
-        "--split {wildcards.split:q} --output {output:q} --profile {params.profile:q} > {log:q} 2>&1"
+        "--split {wildcards.split:q} --output {output:q} --preset {params.preset:q} > {log:q} 2>&1"
 
 
 rule evaluate:
@@ -77,9 +77,9 @@ rule evaluate:
     params:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
         output=lambda wildcards, output: str(Path(output.csv).parent),
-        profile=PROFILE,
+        preset=config["preset"],
         # Not used by the command: a change reruns the rule (params trigger).
-        settings=profile_settings("evaluate"),
+        settings=preset_settings("evaluate"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}_lod{lod}.log",
     benchmark:
@@ -92,7 +92,7 @@ rule evaluate:
         **preset_resources("evaluate"),
     shell:
         "python -m pig.stages.evaluate --capture {params.capture:q} --renders {input.renders:q} "
-        "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} --profile {params.profile:q} "
+        "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} --preset {params.preset:q} "
         "> {log:q} 2>&1"
 
 
@@ -135,9 +135,9 @@ rule make_table:
         table="results/tables/{dataset}_{table}.csv",
         markdown="results/tables/{dataset}_{table}.md",
     params:
-        variants=lambda wildcards: table_variants(profile(), config["variants"], wildcards.table),
+        variants=lambda wildcards: table_variants(preset(), config["variants"], wildcards.table),
         output=lambda wildcards, output: str(Path(output.table).parent),
-        profile=PROFILE,
+        preset=config["preset"],
     log:
         "results/tables/logs/{dataset}_{table}.log",
     benchmark:
@@ -150,5 +150,5 @@ rule make_table:
         runtime=10,
     shell:
         "python -m pig.stages.tables --table {wildcards.table:q} --dataset {wildcards.dataset:q} "
-        "--summaries {input.summaries:q} --variants {params.variants:q} --profile {params.profile:q} "
+        "--summaries {input.summaries:q} --variants {params.variants:q} --preset {params.preset:q} "
         "--output {params.output:q} > {log:q} 2>&1"

@@ -1,5 +1,5 @@
 # Fit one avatar per (dataset, subject, variant) on the preprocessed capture's train split.
-# A killed fit resumes from {variant}/checkpoint.pt when the rule runs again. Reruns when the profile sections the
+# A killed fit resumes from {variant}/checkpoint.pt when the rule runs again. Reruns when the preset sections the
 # fit reads or the variant's overrides change (params.settings).
 
 
@@ -12,9 +12,9 @@ rule fit_avatar:
     params:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
         output=lambda wildcards, output: str(Path(output.checkpoint).parent),
-        profile=PROFILE,
+        preset=config["preset"],
         # Not used by the command: a change reruns the rule (params trigger).
-        settings=lambda wildcards: profile_settings(
+        settings=lambda wildcards: preset_settings(
             "avatar", "fit", "field", "precond", "rasterizer", variant=wildcards.variant),
     log:
         "results/{dataset}/{subject}/{variant}/logs/fit.log",
@@ -25,4 +25,4 @@ rule fit_avatar:
         **preset_resources("fit_avatar"),
     shell:
         "python -m pig.stages.fit --capture {params.capture:q} --output {params.output:q} "
-        "--profile {params.profile:q} --variant {wildcards.variant:q} > {log:q} 2>&1"
+        "--preset {params.preset:q} --variant {wildcards.variant:q} > {log:q} 2>&1"

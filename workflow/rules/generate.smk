@@ -1,18 +1,18 @@
 # Generate the built-in synthetic subject (THuman4 layout + ground-truth meshes) under the synthetic
-# dataset's root; its sizes come from the profile's `synthetic` section (pig.data.synthetic).
+# dataset's root; its sizes come from the preset's `synthetic` section (pig.data.synthetic).
 from pig.config import load_section
 from pig.data.synthetic_config import SyntheticConfig
 
 
 def synthetic_config():
-    return load_section(profile(), "synthetic", SyntheticConfig)
+    return load_section(preset(), "synthetic", SyntheticConfig)
 
 
 rule generate_capture:
     output:
         directory(str(Path(dataset_config("synthetic")["root"]) / "{subject}")),
     params:
-        profile=PROFILE,
+        preset=config["preset"],
         # Not used by the command: a changed `synthetic` section changes this and so reruns the rule.
         settings=repr(synthetic_config()),
     log:
@@ -26,5 +26,5 @@ rule generate_capture:
         mem_mb=1500 + 800 * synthetic_config().workers,
         runtime=10 + synthetic_config().cameras * synthetic_config().frames // 100,
     shell:
-        "python -m pig.stages.generate --output {output:q} --profile {params.profile:q} --workers {threads} "
+        "python -m pig.stages.generate --output {output:q} --preset {params.preset:q} --workers {threads} "
         "--overwrite --quiet > {log:q} 2>&1"

@@ -1,7 +1,7 @@
 # Preprocess a raw subject (THuman4 layout, DNA-Rendering, or the generated synthetic capture) into
 # results/{dataset}/{subject}/capture/ (sentinel report.json): undistorted, masked, resized frames,
 # cameras, SMPL-X parameters, splits, projection check. Reruns when the raw files (params.raw: sizes and mtimes),
-# the dataset YAML or the profile's `preprocess` section change.
+# the dataset YAML or the preset's `preprocess` section change.
 from snakemake.exceptions import WorkflowError
 
 from pig.data.formats import capture_format
@@ -42,10 +42,10 @@ PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split")
 
 
 def preprocess_settings(wildcards):
-    """Hash of what the stage reads besides the raw files: the profile's `preprocess` section with this dataset's
+    """Hash of what the stage reads besides the raw files: the preset's `preprocess` section with this dataset's
     entry of `preprocess.datasets`, and the dataset YAML's PREPROCESS_DATASET_KEYS."""
     dataset = dataset_config(wildcards.dataset)
-    section = dict(profile().get("preprocess") or {})
+    section = dict(preset().get("preprocess") or {})
     per_dataset = (section.pop("datasets", None) or {}).get(dataset.get("name"))
     return settings_hash({"preprocess": section, "dataset_overrides": per_dataset,
                           "dataset": {key: dataset.get(key) for key in PREPROCESS_DATASET_KEYS}})
@@ -72,7 +72,7 @@ rule preprocess_capture:
         format=lambda wildcards: dataset_config(wildcards.dataset)["format"],
         dataset=lambda wildcards: config["datasets"][wildcards.dataset],
         body_model=body_model_option,
-        profile=PROFILE,
+        preset=config["preset"],
         # Not used by the command: a change of either reruns the rule (params trigger).
         settings=preprocess_settings,
         raw=raw_manifest,
@@ -85,5 +85,5 @@ rule preprocess_capture:
         **preset_resources("preprocess_capture"),
     shell:
         "python -m pig.stages.preprocess --format {params.format:q} --input {params.root:q} --output {params.output:q} "
-        "--profile {params.profile:q} --dataset {params.dataset:q} --subject {wildcards.subject:q} "
+        "--preset {params.preset:q} --dataset {params.dataset:q} --subject {wildcards.subject:q} "
         "{params.body_model:q} > {log:q} 2>&1"
