@@ -1,5 +1,6 @@
-# PiG-Avatar pipeline. `snakemake --cores 2` builds the default target (the synthetic table);
-# see README.md and ../shared/DESIGN.md. Rules live in workflow/rules/*.smk.
+# PiG-Avatar pipeline. `snakemake --cores 2` builds the default target (the synthetic table and the report's
+# montages); `snakemake --report report.html` then writes the HTML report. See README.md and ../shared/DESIGN.md.
+# Rules live in workflow/rules/*.smk, their helpers in workflow/rules/common.smk.
 from snakemake.utils import validate
 
 
@@ -13,10 +14,14 @@ check_renamed_config_keys()
 validate(config, "config/schema/config.schema.yaml")
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/generate.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/report.smk"
 include: "workflow/rules/animate.smk"
 
 
@@ -24,5 +29,6 @@ check_preset_resources()
 
 
 rule all:
+    """The default target: the config dataset's main table and the montages of its runs."""
     input:
         default_targets(),

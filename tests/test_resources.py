@@ -16,7 +16,8 @@ from pig.config import ConfigError, load_preset
 from pig.resources import RuleResources, check_rule_names, rule_resources
 
 REPO = Path(__file__).resolve().parent.parent
-PRESET_RULES = {"preprocess_capture", "fit_avatar", "render_split", "evaluate", "make_tables", "animate"}
+PRESET_RULES = {"preprocess_capture", "fit_avatar", "render_split", "evaluate", "montage_split", "make_tables",
+                "make_table", "animate"}
 
 
 def preset(section) -> dict:

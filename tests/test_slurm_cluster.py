@@ -1,5 +1,6 @@
 """The `test` preset's whole workflow on a real one-node Slurm cluster on 127.0.0.1, through
-`--workflow-profile workflow/profiles/slurm` (snakemake-executor-plugin-slurm).
+`--workflow-profile slurm` (workflow/profiles/slurm, found as profiles/slurm beside the Snakefile; the README's
+command) and snakemake-executor-plugin-slurm.
 
 The cluster is Debian's slurm-wlm and munge, started here as root: munged, slurmctld and slurmd in a temporary
 folder, a slurm.conf at Slurm's default path (the executor strips SLURM_CONF from the job steps it starts). Job
@@ -31,7 +32,7 @@ MARK = "# written by pig's tests/test_slurm_cluster.py"
 TOOLS = ("munged", "mungekey", "slurmctld", "slurmd", "sinfo", "sbatch", "squeue", "sacct", "scancel")
 # Jobs of the default target with the test preset (2 LODs, 2 held-out splits, one variant).
 JOBS = {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": 1, "render_split": 2, "evaluate": 4,
-        "make_tables": 1}
+        "montage_split": 2, "make_tables": 1}
 
 
 def skip_reason() -> str | None:
@@ -153,7 +154,7 @@ def test_workflow_runs_on_slurm(cluster, tmp_path):
     (work / "config").symlink_to(REPO / "config")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     command = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"),
-               "--workflow-profile", str(REPO / "workflow" / "profiles" / "slurm"),
+               "--workflow-profile", "slurm",
                "--config", "preset=test", "dataset=synthetic", "variants=[pig]",
                # This cluster's particulars: no accounts, no slurmdbd; quick first status check.
                "--slurm-no-account", "--slurm-status-command", "squeue",
