@@ -147,6 +147,9 @@ def workflow(recorded, tmp_path) -> Path:
 
 def test_shell_commands_quote_every_path(recorded):
     output = snakemake_run(recorded, TARGET, "--dry-run", "--printshellcmds", "--forceall")
+    # Snakemake finds workflow/profiles/default as profiles/default (a link) beside the Snakefile.
+    used = output.split("Using workflow specific profile ", 1)[1].split(" for setting", 1)[0]
+    assert Path(used).resolve() == REPO / "workflow" / "profiles" / "default"
     commands = [line.split("Shell command: ", 1)[1] for line in output.splitlines() if "Shell command: " in line]
     assert len(commands) == sum(FROM_PREPROCESS.values())
     for command in commands:
