@@ -1,19 +1,27 @@
-# PiG-Avatar pipeline. `snakemake --cores 2` builds the default target (the synthetic table);
-# see README.md and ../shared/DESIGN.md. Rules live in workflow/rules/*.smk.
+# PiG-Avatar pipeline. `snakemake --cores 2` builds the default target (the synthetic table and the report's
+# montages); `snakemake --report report.html` then writes the HTML report. See README.md and ../shared/DESIGN.md.
+# Rules live in workflow/rules/*.smk, their helpers in workflow/rules/common.smk.
 from snakemake.utils import validate
 
 
 configfile: "config/config.yaml"
 
 
+include: "workflow/rules/common.smk"
+
+
+check_renamed_config_keys()
 validate(config, "config/schema/config.schema.yaml")
 
 
-include: "workflow/rules/common.smk"
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/generate.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/report.smk"
 include: "workflow/rules/animate.smk"
 
 
@@ -21,5 +29,6 @@ check_preset_resources()
 
 
 rule all:
+    """The default target: the config dataset's main table and the montages of its runs."""
     input:
         default_targets(),

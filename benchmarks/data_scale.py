@@ -4,11 +4,11 @@ Builds synthetic captures of C cameras x {50, 500, 2500} frames (`--frames`): th
 preprocessed (its preprocess throughput is printed), the longer ones repeat its preprocessed frames under
 new frame ids (hard links, the SMPL-X rows tiled), so every (camera, frame) is a distinct file the fit must
 read; only the disk's page cache sees repeats, which is not the process's memory. Each capture then gets
-a fit of `--iterations` iterations with the given profile (default: `paper` on CUDA, i.e. 100k anchors,
+a fit of `--iterations` iterations with the given preset (default: `paper` on CUDA, i.e. 100k anchors,
 4 views x 5 timesteps, 5 x 512 decoders) in a fresh process, which reports its own peaks.
 
-    python benchmarks/data_scale.py --workdir /tmp/scale                          # CUDA: paper profile
-    python benchmarks/data_scale.py --workdir /tmp/scale --profile cpu-demo --device cpu --iterations 5
+    python benchmarks/data_scale.py --workdir /tmp/scale                          # CUDA: paper preset
+    python benchmarks/data_scale.py --workdir /tmp/scale --preset cpu-demo --device cpu --iterations 5
     python benchmarks/data_scale.py --workdir /tmp/scale --paper-resolution      # + data wait at 1330 x 1150
 
 `--paper-resolution` adds one run on a 1330 x 1150 capture (`--paper-frames` generated, tiled to
@@ -30,7 +30,7 @@ import numpy as np
 import yaml
 
 from pig.body.params import SmplxParams
-from pig.config import load_profile
+from pig.config import load_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.stages.preprocess import main as preprocess
 
@@ -45,7 +45,7 @@ def build_capture(workdir: Path, cameras: int, frames: int, width: int, height: 
         print(f"generate {cameras} x {frames} at {width} x {height}: {time.perf_counter() - start:.1f} s", flush=True)
         profile = workdir / "preprocess.yaml"
         profile.write_text(yaml.safe_dump({"preprocess": {"workers": workers}}))
-        if preprocess(["--input", str(raw), "--output", str(capture), "--profile", str(profile), "--dataset", "synthetic",
+        if preprocess(["--input", str(raw), "--output", str(capture), "--preset", str(profile), "--dataset", "synthetic",
                        "--no-progress", "--overwrite"]) != 0:
             raise SystemExit("preprocess failed")
     report = json.loads((capture / "report.json").read_text())
@@ -83,7 +83,7 @@ def tile_capture(source: Path, target: Path, frames: int) -> Path:
 
 
 def fit_profile(workdir: Path, profile: str, iterations: int, tag: str) -> Path:
-    data = load_profile(profile)
+    data = load_preset(profile)
     data.pop("_path")
     # No held-out evaluation or checkpoint inside the measured iterations.
     data["fit"].update(iterations=iterations, eval_every=10**9, checkpoint_minutes=10**6)
@@ -128,7 +128,7 @@ def child(capture: str, profile: str, device: str, out: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", type=Path, required=True)
-    parser.add_argument("--profile", default="paper", help="fit profile (name or YAML); iterations are cut")
+    parser.add_argument("--preset", default="paper", help="fit preset (name or YAML); iterations are cut")
     parser.add_argument("--device", default="cuda", choices=["cpu", "cuda"])
     parser.add_argument("--cameras", type=int, default=24)
     parser.add_argument("--frames", type=int, nargs="+", default=[50, 500, 2500])
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{throughput['seconds_images']:.2f} s = {throughput['images_per_s']:.0f} images/s "
           f"({args.workers} workers)", flush=True)
     rows = []
-    profile = fit_profile(args.workdir, args.profile, args.iterations, "scale")
+    profile = fit_profile(args.workdir, args.preset, args.iterations, "scale")
     for frames in sorted(args.frames):
         capture = base if frames == min(args.frames) else tile_capture(base, args.workdir / f"tiled_{frames}", frames)
         result = measure_fit(capture, profile, args.device, args.workdir / f"fit_{frames}")
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         paper, rate = build_capture(args.workdir, args.cameras, args.paper_frames, 1330, 1150, args.workers)
         print(f"preprocess at 1330 x 1150: {rate['images_per_s']:.1f} images/s ({args.workers} workers)", flush=True)
         tiled = tile_capture(paper, args.workdir / f"paper_tiled_{args.paper_tiled}", args.paper_tiled)
-        profile = fit_profile(args.workdir, args.profile, args.paper_iterations, "paper_resolution")
+        profile = fit_profile(args.workdir, args.preset, args.paper_iterations, "paper_resolution")
         result = measure_fit(tiled, profile, args.device, args.workdir / "fit_paper_resolution")
         rows.append({"capture": f"{args.cameras} x {args.paper_tiled} at 1330 x 1150 "
                                 f"({args.paper_frames} generated)", **result})

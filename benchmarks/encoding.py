@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pig.config import load_profile, load_section, load_yaml
+from pig.config import load_preset, load_section, load_yaml
 from pig.data.capture import Capture
 from pig.data.formats import open_capture
 from pig.data.rectify import Rectifier
@@ -143,9 +143,9 @@ def decode_rate(encoded_views: list[tuple[np.ndarray, np.ndarray]], threads: int
 
 
 def capture_read_rates(raw_root: Path, out: Path, threads: list[int], seconds: float = 2.0) -> dict[int, float]:
-    """Training views (JPEG image + 1-bit PNG mask, as the paper profile writes them) read per second through
+    """Training views (JPEG image + 1-bit PNG mask, as the paper preset writes them) read per second through
     `Capture` with its cache off (file read, completeness check, decode, background restored), on `threads`."""
-    profile = load_profile("paper")
+    profile = load_preset("paper")
     cfg = load_section(profile, "preprocess", PreprocessConfig)
     split = load_section(load_yaml(REPO / "config" / "datasets" / "synthetic.yaml"), "split", SplitConfig)
     preprocess_capture(open_capture("thuman4", raw_root), out, cfg, raw_root / "body_model.npz", split, "subject00",

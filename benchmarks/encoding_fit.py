@@ -1,11 +1,11 @@
 """What a lossy training-view encoding costs end to end: the synthetic subject fitted from a lossless and from a
 JPEG capture with the same seed, both scored on the same lossless novel-view ground truth.
 
-    python benchmarks/encoding_fit.py --profile paper --frames 20 --iterations 4000 --work /tmp/encoding_fit
+    python benchmarks/encoding_fit.py --preset paper --frames 20 --iterations 4000 --work /tmp/encoding_fit
         [--cameras N] [--jpeg-quality Q] [--noise-floor]
 
-Generates the profile's synthetic subject, preprocesses it twice (training views PNG, or JPEG at
---jpeg-quality with 4:4:4 chroma; held-out views PNG in both), fits both with the profile's fit settings
+Generates the preset's synthetic subject, preprocesses it twice (training views PNG, or JPEG at
+--jpeg-quality with 4:4:4 chroma; held-out views PNG in both), fits both with the preset's fit settings
 (--iterations overrides the budget), renders and evaluates the novel-view split at the finest level of detail
 against the lossless capture, and prints the PSNR of each and the difference (issue 11 asks < 0.05 dB).
 --noise-floor fits the lossless capture a second time, for the run-to-run spread of the same seed (GPU
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import yaml
 
-from pig.config import load_profile
+from pig.config import load_preset
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -45,9 +45,9 @@ def stage(name: str, *args: str, done: Path) -> None:
 
 def derived_profile(base: str, work: Path, name: str, preprocess: dict, synthetic: dict,
                     iterations: int | None) -> Path:
-    """The profile `base` with the given preprocess and synthetic keys and fit budget, written to
+    """The preset `base` with the given preprocess and synthetic keys and fit budget, written to
     work/profile_{name}.yaml."""
-    profile = load_profile(base)
+    profile = load_preset(base)
     profile.pop("_path")
     profile["preprocess"] = {**(profile.get("preprocess") or {}), **preprocess}
     profile["synthetic"] = {**(profile.get("synthetic") or {}), **synthetic}
@@ -76,29 +76,29 @@ def megabytes(capture: Path, suffix: str) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--profile", default="paper", help="compute profile (its synthetic, preprocess, fit sections)")
-    parser.add_argument("--iterations", type=int, default=None, help="fit budget (default: the profile's)")
-    parser.add_argument("--cameras", type=int, default=None, help="synthetic cameras (default: the profile's)")
-    parser.add_argument("--frames", type=int, default=None, help="synthetic frames (default: the profile's)")
-    parser.add_argument("--jpeg-quality", type=int, default=None, help="default: the profile's preprocess.jpeg_quality")
+    parser.add_argument("--preset", default="paper", help="compute preset (its synthetic, preprocess, fit sections)")
+    parser.add_argument("--iterations", type=int, default=None, help="fit budget (default: the preset's)")
+    parser.add_argument("--cameras", type=int, default=None, help="synthetic cameras (default: the preset's)")
+    parser.add_argument("--frames", type=int, default=None, help="synthetic frames (default: the preset's)")
+    parser.add_argument("--jpeg-quality", type=int, default=None, help="default: the preset's preprocess.jpeg_quality")
     parser.add_argument("--work", type=Path, required=True, help="folder for the captures, fits and renders")
     parser.add_argument("--noise-floor", action="store_true", help="also refit the lossless capture (same seed)")
     args = parser.parse_args()
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
-    quality = args.jpeg_quality or (load_profile(args.profile).get("preprocess") or {}).get("jpeg_quality", 95)
+    quality = args.jpeg_quality or (load_preset(args.preset).get("preprocess") or {}).get("jpeg_quality", 95)
     encodings = {"lossless": {"train_encoding": "png", "heldout_encoding": "png"},
                  "jpeg": {"train_encoding": "jpeg", "heldout_encoding": "png", "jpeg_quality": quality}}
     synthetic = {key: value for key, value in (("cameras", args.cameras), ("frames", args.frames)) if value}
-    profiles = {name: derived_profile(args.profile, work, name, pre, synthetic, args.iterations)
+    profiles = {name: derived_profile(args.preset, work, name, pre, synthetic, args.iterations)
                 for name, pre in encodings.items()}
     raw = work / "raw" / "subject00"
-    print(f"profile {args.profile}, fit iterations {args.iterations or 'as profiled'}, JPEG q{quality}; work {work}")
-    stage("generate", "--output", str(raw), "--profile", str(profiles["lossless"]), "--quiet",
+    print(f"preset {args.preset}, fit iterations {args.iterations or 'as profiled'}, JPEG q{quality}; work {work}")
+    stage("generate", "--output", str(raw), "--preset", str(profiles["lossless"]), "--quiet",
           done=raw / "calibration.json")
     for name, profile in profiles.items():
         capture = work / f"capture_{name}"
-        stage("preprocess", "--input", str(raw), "--output", str(capture), "--profile", str(profile),
+        stage("preprocess", "--input", str(raw), "--output", str(capture), "--preset", str(profile),
               "--dataset", "synthetic", "--no-progress", done=capture / "report.json")
     runs = {"lossless": "lossless", "jpeg": "jpeg", **({"lossless_repeat": "lossless"} if args.noise_floor else {})}
     ground_truth = work / "capture_lossless"  # identical held-out files in both captures; one ground truth
@@ -106,14 +106,14 @@ def main() -> None:
     for run, encoding in runs.items():
         fit = work / f"fit_{run}"
         profile = str(profiles[encoding])
-        stage("fit", "--capture", str(work / f"capture_{encoding}"), "--output", str(fit), "--profile", profile,
+        stage("fit", "--capture", str(work / f"capture_{encoding}"), "--output", str(fit), "--preset", profile,
               done=fit / "avatar.pt")
         stage("render", "--checkpoint", str(fit / "avatar.pt"), "--capture", str(ground_truth), "--split",
-              "novel_view", "--output", str(fit / "renders" / "novel_view"), "--profile", profile,
+              "novel_view", "--output", str(fit / "renders" / "novel_view"), "--preset", profile,
               done=fit / "renders" / "novel_view")
         result = fit / "novel_view_psnr.json"  # written once every level is evaluated
         stage("evaluate", "--capture", str(ground_truth), "--renders", str(fit / "renders" / "novel_view"),
-              "--split", "novel_view", "--output", str(fit / "metrics"), "--profile", profile, done=result)
+              "--split", "novel_view", "--output", str(fit / "metrics"), "--preset", profile, done=result)
         if not result.exists():
             result.write_text(json.dumps(novel_view_psnr(fit / "metrics")))
         results[run] = json.loads(result.read_text())

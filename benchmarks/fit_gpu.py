@@ -1,7 +1,7 @@
 """GPU benchmark of the fit stage at the paper's sizes: milliseconds per iteration, data wait, peak GPU memory, where the time goes.
 
-Generates a synthetic capture at the paper profile's image size (fewer frames, so it finishes in
-minutes), preprocesses it, runs `pig.avatar.training.fit` (the fit stage) with the `paper` profile (100k anchors, 4 views x 5
+Generates a synthetic capture at the paper preset's image size (fewer frames, so it finishes in
+minutes), preprocesses it, runs `pig.avatar.training.fit` (the fit stage) with the `paper` preset (100k anchors, 4 views x 5
 timesteps, 5 x 512 decoders) once per `--variant` on that same capture, in this process, and prints
 one table row per variant with its ratio to the first, and the time each iteration waited for its training
 views (train_log.csv's data_wait_ms: decoding, staging and the copy to the GPU that prefetching did not hide).
@@ -12,8 +12,8 @@ Run on the GPU machine:
             --variant factorized:precond.knn_solver=factorized --variant cg:precond.knn_solver=cg \
             --variant no_prefetch:fit.prefetch=0
 
-A variant is `NAME:section.key=value,...` (values in YAML) over the profile, e.g. the speed levers
-`fit.precision=bf16`, `fit.compile=true` (pig/avatar/training.py). A NAME among the profile's `variants:`
+A variant is `NAME:section.key=value,...` (values in YAML) over the preset, e.g. the speed levers
+`fit.precision=bf16`, `fit.compile=true` (pig/avatar/training.py). A NAME among the preset's `variants:`
 (`template_bound:`, `no_precond:`, ...) fits that method variant, with any overrides on top. `--warm-compile N`
 first runs an untimed N-iteration fit, so that compilation (cached on disk) does not eat the first variant's
 budget more than the others'.
@@ -46,7 +46,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from pig.config import load_profile
+from pig.config import load_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.stages._io import write_json
 from pig.avatar.training import fit
@@ -124,7 +124,7 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
     for section, values in overrides.items():
         varied.setdefault(section, {}).update(values)
     total = args.iterations + args.profile_phases + args.profile_ops
-    # Same profile, run length cut; no held-out evaluation or checkpoint inside the timing.
+    # Same preset, run length cut; no held-out evaluation or checkpoint inside the timing.
     varied["fit"].update(iterations=total, eval_every=args.eval_every or 10**9, checkpoint_minutes=10**6)
     if args.budget:
         varied["fit"].update(iterations=10**7, time_budget_s=args.budget)
@@ -210,10 +210,10 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
         renders = args.workdir / f"renders_{name}" / split
         metrics = args.workdir / f"metrics_{name}"
         render(["--checkpoint", str(fit_dir / "avatar.pt"), "--capture", str(capture), "--split", split, "--output", str(renders),
-                "--profile", str(profile_path), "--overwrite"])
+                "--preset", str(profile_path), "--overwrite"])
         finest = ["--lod", str(max(render_levels(renders)))] if args.finest_only else []
         evaluate(["--capture", str(capture), "--renders", str(renders), "--split", split, "--output", str(metrics),
-                  "--profile", str(profile_path), "--overwrite", *finest])
+                  "--preset", str(profile_path), "--overwrite", *finest])
         out[split] = {}
         for record in sorted(metrics.glob(f"{split}_lod*.json")):
             summary = read_record(record, "evaluate summary")
@@ -247,9 +247,9 @@ def plot_heldout(results: list[dict], path: Path) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/pig_fit_bench"))
-    parser.add_argument("--profile", default="paper")
-    parser.add_argument("--frames", type=int, default=10, help="captured frames (the paper profile has 120)")
-    parser.add_argument("--cameras", type=int, default=None, help="captured cameras (default: the profile's)")
+    parser.add_argument("--preset", default="paper")
+    parser.add_argument("--frames", type=int, default=10, help="captured frames (the paper preset has 120)")
+    parser.add_argument("--cameras", type=int, default=None, help="captured cameras (default: the preset's)")
     parser.add_argument("--reuse-capture", action="store_true", help="keep an existing capture in --workdir")
     parser.add_argument("--iterations", type=int, default=60, help="timed iterations, warm-up included")
     parser.add_argument("--warmup", type=int, default=5, help="iterations left out of the timing (compilation happens there)")
@@ -268,7 +268,7 @@ def main(argv=None) -> int:
     if not torch.cuda.is_available():
         print("fit_gpu: no CUDA device", file=sys.stderr)
         return 1
-    profile = load_profile(args.profile)
+    profile = load_preset(args.preset)
     profile.pop("_path")
     syn_cfg = {**profile.get("synthetic", {}), "frames": args.frames, "supersample": args.supersample}
     if args.cameras is not None:
@@ -282,7 +282,7 @@ def main(argv=None) -> int:
         raw = generate_capture(args.workdir / "raw", syn, progress=False)
         stamps["generate_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        preprocess(["--input", str(raw), "--output", str(capture), "--profile", args.profile,
+        preprocess(["--input", str(raw), "--output", str(capture), "--preset", args.preset,
                     "--format", "thuman4", "--body-model", str(raw / "body_model.npz"), "--no-progress"])
         stamps["preprocess_s"] = time.perf_counter() - t0
 

@@ -1,7 +1,7 @@
 """Preprocess stage time on the default (cpu-demo) synthetic capture: thread-pool sizes and output scales; with
 --full-size, throughput at THuman4's 1330 x 1150 and an estimate for a full THuman4 subject.
 
-    python benchmarks/preprocess.py [--raw DIR] [--profile cpu-demo]
+    python benchmarks/preprocess.py [--raw DIR] [--preset cpu-demo]
     python benchmarks/preprocess.py --full-size [--raw-full DIR] [--workers 1 2] [--cores 16]
 
 Generates the synthetic captures into a temporary folder unless --raw / --raw-full name them, then runs the
@@ -24,7 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pig.config import load_profile, load_section, load_yaml
+from pig.config import load_preset, load_section, load_yaml
 from pig.data.formats import open_capture
 from pig.data.rectify import MASK_THRESHOLD, Rectifier, composite
 from pig.data.splits import SplitConfig
@@ -82,14 +82,14 @@ def full_size(raw_root: Path, tmp: Path, workers: list[int], cores: int) -> None
     dataset = load_yaml(REPO / "config" / "datasets" / "synthetic.yaml")
     split_cfg = load_section(dataset, "split", SplitConfig)
     raw = open_capture("thuman4", raw_root)
-    base = load_section(load_profile("paper"), "preprocess", PreprocessConfig)
+    base = load_section(load_preset("paper"), "preprocess", PreprocessConfig)
     rows = []
     for count in workers:
         cfg = PreprocessConfig(**{**base.__dict__, "workers": count})
         report = preprocess_capture(raw, tmp / f"full_{count}", cfg, raw_root / "body_model.npz", split_cfg,
                                     "subject00", progress=False)
         rows.append((count, report["images"], report["seconds_images"], report["megabytes"]))
-    print(f"\n1330x1150 views, paper profile (train JPEG q{base.jpeg_quality} 4:4:4, held out PNG level "
+    print(f"\n1330x1150 views, paper preset (train JPEG q{base.jpeg_quality} 4:4:4, held out PNG level "
           f"{base.png_compression}, masks 1-bit PNG), {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.1f}")
     print(f"| {'workers':>7} | {'images':>6} | {'images_s':>8} | {'img/s':>6} | {'MB images':>9} | {'MB masks':>8} |")
@@ -168,7 +168,7 @@ def gil_share(raw, cfg: PreprocessConfig, split_cfg: SplitConfig, out: Path) -> 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--raw", type=Path, default=None, help="existing raw synthetic subject folder")
-    parser.add_argument("--profile", default="cpu-demo")
+    parser.add_argument("--preset", default="cpu-demo")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--full-size", action="store_true", help="only the 1330x1150 throughput and estimate")
     parser.add_argument("--raw-full", type=Path, default=None, help="existing raw subject at 1330x1150")
@@ -186,7 +186,7 @@ def main() -> None:
                       f"{time.perf_counter() - start:.0f} s")
             full_size(raw_root, Path(tmp), args.workers, args.cores)
         return
-    profile = load_profile(args.profile)
+    profile = load_preset(args.preset)
     dataset = load_yaml(REPO / "config" / "datasets" / "synthetic.yaml")
     split_cfg = load_section(dataset, "split", SplitConfig)
     with tempfile.TemporaryDirectory() as tmp:

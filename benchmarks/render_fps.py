@@ -11,7 +11,7 @@ plus noise, so the nearest timestep changes):
   is one compiled CUDA graph: pose -> nearest timestep -> body -> transport -> gather -> splats) + raster, against
   raster alone on its splats, and its image's mean absolute difference from the old path's (second table).
 The device is synchronised around every timed call. Without --checkpoint the avatar is built from the
-profile's sizes without a fit (the stand-in body, --timesteps random training poses): its decoders are
+preset's sizes without a fit (the stand-in body, --timesteps random training poses): its decoders are
 untrained, so the splats are random-ish and only the timings mean anything.
 
     python benchmarks/render_fps.py --device cuda                          # paper sizes, 1330 x 1150
@@ -34,7 +34,7 @@ import torch
 from pig.avatar.config import AvatarConfig
 from pig.avatar.driver import AvatarDriver
 from pig.body.params import SmplxParams
-from pig.config import load_profile, load_section
+from pig.config import load_preset, load_section
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.render.api import render_gaussians
@@ -42,11 +42,11 @@ from pig.field.precondition import bake_preconditioning
 
 
 def build_unfitted(profile: str, anchors: int | None, timesteps: int, seed: int = 0):
-    """An avatar of the profile's sizes on the stand-in body, not fitted."""
+    """An avatar of the preset's sizes on the stand-in body, not fitted."""
     from pig.avatar.build import build_avatar
     from pig.body.standin import write_standin
 
-    sections = load_profile(profile)
+    sections = load_preset(profile)
     cfg = load_section(sections, "avatar", AvatarConfig)
     if anchors:
         cfg = replace(cfg, num_anchors=anchors)
@@ -103,8 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cuda")
     parser.add_argument("--checkpoint", type=Path, help="avatar.pt of the fit stage (default: build without a fit)")
-    parser.add_argument("--profile", default="paper", help="profile whose avatar, field and precond sizes to build")
-    parser.add_argument("--anchors", type=int, help="number of anchors (default: the profile's)")
+    parser.add_argument("--preset", default="paper", help="preset whose avatar, field and precond sizes to build")
+    parser.add_argument("--anchors", type=int, help="number of anchors (default: the preset's)")
     parser.add_argument("--timesteps", type=int, default=100, help="training timesteps of a built avatar")
     parser.add_argument("--width", type=int, default=1330)
     parser.add_argument("--height", type=int, default=1150)
@@ -125,8 +125,8 @@ def main(argv: list[str] | None = None) -> int:
 
         model, source = load_avatar(args.checkpoint), f"checkpoint {args.checkpoint}"
     else:
-        model = build_unfitted(args.profile, args.anchors, args.timesteps)
-        source = f"profile {args.profile}, not fitted (untrained decoders: random-ish splats, timings only)"
+        model = build_unfitted(args.preset, args.anchors, args.timesteps)
+        source = f"preset {args.preset}, not fitted (untrained decoders: random-ish splats, timings only)"
     bake_preconditioning(model)  # as the render stage does: no anchor or grid solve on either path
     model = model.to(device).eval()
     if args.precision == "tf32":

@@ -1,6 +1,6 @@
-"""Time the synthetic capture generator: stand-in model, scene, one frame (cold vs cached rays), whole profiles.
+"""Time the synthetic capture generator: stand-in model, scene, one frame (cold vs cached rays), whole presets.
 
-    python benchmarks/synthetic_generate.py [--profiles test cpu-demo]
+    python benchmarks/synthetic_generate.py [--presets test cpu-demo]
 
 Prints one table; ratios are taken within this process so they survive noisy shared cores.
 """
@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from pig.body.standin import make_standin_arrays
-from pig.config import load_profile, load_section
+from pig.config import load_preset, load_section
 from pig.data import synthetic_render
 from pig.data.synthetic import SyntheticConfig, build_scene, generate_capture
 from pig.data.synthetic_render import render_frame
@@ -33,13 +33,13 @@ def timed(fn):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--profiles", nargs="+", default=["test", "cpu-demo"])
+    parser.add_argument("--presets", nargs="+", default=["test", "cpu-demo"])
     args = parser.parse_args()
     rows = []
     _, wall, cpu = timed(lambda: make_standin_arrays(0))
     rows.append(("-", "stand-in model (make_standin_arrays)", wall, cpu, ""))
-    for name in args.profiles:
-        cfg = load_section(load_profile(name), "synthetic", SyntheticConfig)
+    for name in args.presets:
+        cfg = load_section(load_preset(name), "synthetic", SyntheticConfig)
         scene, wall, cpu = timed(lambda: build_scene(cfg))
         rows.append((name, "build_scene (stand-in cached)", wall, cpu, ""))
         synthetic_render._RAYS.clear()
@@ -58,7 +58,7 @@ def main() -> None:
             totals[workers] = wall
             note = "" if workers == 1 else f"wall 2 workers / 1 worker {wall / totals[1]:.2f}"
             rows.append((name, f"generate_capture, {workers} worker(s), {cfg.frames} frames", wall, cpu, note))
-    print(f"| {'profile':8} | {'step':52} | {'wall s':>7} | {'cpu s':>7} | note |")
+    print(f"| {'preset':8} | {'step':52} | {'wall s':>7} | {'cpu s':>7} | note |")
     print(f"|{'-' * 10}|{'-' * 54}|{'-' * 9}|{'-' * 9}|------|")
     for profile, step, wall, cpu, note in rows:
         print(f"| {profile:8} | {step:52} | {wall:7.2f} | {cpu:7.2f} | {note} |")

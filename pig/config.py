@@ -1,6 +1,6 @@
-"""Typed configuration: compute profiles are YAML files whose sections load into dataclasses.
+"""Typed configuration: compute presets are YAML files whose sections load into dataclasses.
 
-Each module owns the dataclass of its section; `load_section` fills it from a profile, rejecting
+Each module owns the dataclass of its section; `load_section` fills it from a preset, rejecting
 unknown keys and wrong types with the file and key named, so a typo never silently uses a default.
 YAML numbers follow YAML 1.2 (`1e8` and `1.0e8` are floats) rather than PyYAML's YAML 1.1, and digit strings
 with a leading zero (`0165_01`, `0206`) stay strings, as sequence and camera ids do.
@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     import torch
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_PRESET = "cpu-demo"  # config/presets/cpu-demo.yaml: the whole default target on two CPU cores in minutes
 
 T = TypeVar("T")
 
@@ -50,7 +51,7 @@ _Loader.add_implicit_resolver(_FLOAT, re.compile(r"""^(?:[-+]?(?:[0-9]+\.[0-9]*|
 
 
 def config_dirs(kind: str) -> list[Path]:
-    """The existing `config/<kind>/` folders where a named file (a profile, a dataset) is sought, in order.
+    """The existing `config/<kind>/` folders where a named file (a preset, a dataset) is sought, in order.
 
     First the working directory's, where the workflow runs every rule (locally and on cluster nodes), so that a
     non-editable install (`pip install .`, a Snakemake conda environment) finds the checkout's files; then the
@@ -75,14 +76,14 @@ def named_config(kind: str, name: str) -> Path:
     raise ConfigError(f"unknown {singular} {name!r}: expected one of {known} (in {where}) or a path to a .yaml file")
 
 
-def profile_path(name_or_path: str | Path) -> Path:
-    """Resolve a profile name (`cpu-demo`) or a path to a profile YAML file."""
+def preset_path(name_or_path: str | Path) -> Path:
+    """Resolve a preset name (`cpu-demo`) or a path to a preset YAML file."""
     candidate = Path(name_or_path)
     if candidate.suffix in (".yaml", ".yml"):
         if not candidate.is_file():
-            raise ConfigError(f"profile file {candidate} does not exist")
+            raise ConfigError(f"preset file {candidate} does not exist")
         return candidate
-    return named_config("profiles", str(name_or_path))
+    return named_config("presets", str(name_or_path))
 
 
 def parse_yaml(text: str) -> Any:
@@ -105,16 +106,16 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def load_profile(name_or_path: str | Path) -> dict[str, Any]:
-    """The raw profile mapping, with its source path under the key `_path`."""
-    path = profile_path(name_or_path)
+def load_preset(name_or_path: str | Path) -> dict[str, Any]:
+    """The raw preset mapping, with its source path under the key `_path`."""
+    path = preset_path(name_or_path)
     data = load_yaml(path)
     data["_path"] = str(path)
     return data
 
 
 def resolve_device(name: str, source: str = "device") -> torch.device:
-    """A torch device from a `--device` or profile value (`source` names it): "auto" is CUDA when available.
+    """A torch device from a `--device` or preset value (`source` names it): "auto" is CUDA when available.
 
     A CUDA device that this machine cannot provide is refused here, before any work, in one line instead of
     torch's assertion from deep inside the first transfer.
@@ -137,10 +138,10 @@ def resolve_device(name: str, source: str = "device") -> torch.device:
     return device
 
 
-def load_section(profile: dict[str, Any], section: str, cls: type[T], overrides: dict[str, Any] | None = None) -> T:
-    """Build dataclass `cls` from `profile[section]` (missing section -> all defaults)."""
-    where = f"{profile.get('_path', '<profile>')}: section '{section}'"
-    values = dict(profile.get(section) or {})
+def load_section(preset: dict[str, Any], section: str, cls: type[T], overrides: dict[str, Any] | None = None) -> T:
+    """Build dataclass `cls` from `preset[section]` (missing section -> all defaults)."""
+    where = f"{preset.get('_path', '<preset>')}: section '{section}'"
+    values = dict(preset.get(section) or {})
     values.update(overrides or {})
     return from_dict(cls, values, where)
 

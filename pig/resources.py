@@ -1,4 +1,4 @@
-"""What each workflow job asks of the machine, per rule, from a compute profile's `resources:` section.
+"""What each workflow job asks of the machine, per rule, from a compute preset's `resources:` section.
 
 Snakemake schedules local jobs on them (threads against `--cores`, gpu against `--resources gpu=N`) and its Slurm
 executor turns them into sbatch options: threads -> --cpus-per-task, mem_mb -> --mem, runtime -> --time,
@@ -34,17 +34,17 @@ class RuleResources:
 _LEAST = {"threads": 1, "mem_mb": 1, "runtime": 1, "gpu": 0}
 
 
-def _section(profile: dict[str, Any]) -> tuple[dict[str, Any], str]:
-    where = f"{profile.get('_path', '<profile>')}: section 'resources'"
-    section = profile.get("resources") or {}
+def _section(preset: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    where = f"{preset.get('_path', '<preset>')}: section 'resources'"
+    section = preset.get("resources") or {}
     if not isinstance(section, dict):
         raise ConfigError(f"{where}: expected a mapping of rule names to resources, found {section!r}")
     return section, where
 
 
-def rule_resources(profile: dict[str, Any], rule: str) -> RuleResources:
+def rule_resources(preset: dict[str, Any], rule: str) -> RuleResources:
     """Resources of `rule`: its entry in the section over the `default` entry over RuleResources' defaults."""
-    section, where = _section(profile)
+    section, where = _section(preset)
     values = {}
     for name in (DEFAULT, rule):
         entry = section.get(name) or {}
@@ -61,9 +61,9 @@ def rule_resources(profile: dict[str, Any], rule: str) -> RuleResources:
     return resources
 
 
-def check_rule_names(profile: dict[str, Any], rules: set[str]) -> None:
+def check_rule_names(preset: dict[str, Any], rules: set[str]) -> None:
     """Refuse entries of the section that name no rule among `rules` (those that take their resources from it)."""
-    section, where = _section(profile)
+    section, where = _section(preset)
     unknown = sorted(set(section) - set(rules) - {DEFAULT})
     if unknown:
         raise ConfigError(f"{where}: no rule named {unknown} takes its resources from here; "

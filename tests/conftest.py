@@ -23,23 +23,23 @@ def small_capture(tmp_path_factory):
     root = tmp_path_factory.mktemp("smallcap")
     raw = generate_capture(root / "raw", SyntheticConfig(cameras=5, frames=4, width=48, height=48, workers=1), progress=False)
     out = root / "capture"
-    preprocess(["--input", str(raw), "--output", str(out), "--profile", "test", "--format", "thuman4",
+    preprocess(["--input", str(raw), "--output", str(out), "--preset", "test", "--format", "thuman4",
                 "--body-model", str(raw / "body_model.npz"), "--no-progress"])
     return out
 
 
 @pytest.fixture(scope="session")
 def tiny_fit(small_capture, tmp_path_factory):
-    """(capture folder, avatar.pt) of a 3-iteration fit of `small_capture` with the test profile."""
+    """(capture folder, avatar.pt) of a 3-iteration fit of `small_capture` with the test preset."""
     import yaml
 
     from pig.avatar.training import fit
-    from pig.config import load_profile
+    from pig.config import load_preset
 
     root = tmp_path_factory.mktemp("tinyfit")
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
-    (root / "profile.yaml").write_text(yaml.safe_dump(profile))
-    return small_capture, fit(small_capture, root / "pig", str(root / "profile.yaml"))
+    preset = load_preset("test")
+    preset.pop("_path")
+    preset["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
+    (root / "preset.yaml").write_text(yaml.safe_dump(preset))
+    return small_capture, fit(small_capture, root / "pig", str(root / "preset.yaml"))
 

@@ -94,7 +94,7 @@ def test_capture_camera_and_bad_input(fitted, tmp_path, capsys):
     assert len(frames) == 2 and frames[0].shape[:2] == (cameras[camera]["height"], cameras[camera]["width"])
 
     capsys.readouterr()  # the render's progress bar
-    base = ["--checkpoint", str(checkpoint), "--profile", "test", "--device", "cpu"]
+    base = ["--checkpoint", str(checkpoint), "--preset", "test", "--device", "cpu"]
     cases = [
         (["--output", str(tmp_path / "a"), "--camera", "nope", "--capture", str(capture)], "no camera 'nope'; cameras: "),
         (["--output", str(tmp_path / "b"), "--camera", camera], "--camera needs --capture DIR"),

@@ -27,11 +27,11 @@ def preprocessed(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("capture")
     raw = write_thuman4(tmp / "raw", cameras=3, frames=4, width=192, height=160, ext="png",
                         missing=["images\\cam01\\00000003.png"])
-    profile = tmp / "profile.yaml"
-    profile.write_text("preprocess:\n  scale: 0.5\n  background: [1.0, 1.0, 1.0]\n")
+    preset = tmp / "preset.yaml"
+    preset.write_text("preprocess:\n  scale: 0.5\n  background: [1.0, 1.0, 1.0]\n")
     dataset = tmp / "dataset.yaml"
     dataset.write_text("name: tiny\nsplit:\n  novel_view_cameras: [cam02]\n  novel_pose_frames: [3, 3]\n")
-    assert main(["--input", str(raw), "--output", str(tmp / "out"), "--profile", str(profile),
+    assert main(["--input", str(raw), "--output", str(tmp / "out"), "--preset", str(preset),
                  "--dataset", str(dataset), "--no-progress"]) == 0
     return raw, tmp / "out"
 

@@ -283,7 +283,7 @@ def _refusal(path, differs: str) -> str:
             "delete it to start the fit over, or point --output elsewhere")
 
 
-def test_resume_refuses_another_capture_profile_or_variant(spec, saved):
+def test_resume_refuses_another_capture_preset_or_variant(spec, saved):
     path = saved[0]
     other_capture = {**spec, "capture": {**FINGERPRINT, "images": "0" * 64, "smplx": "1" * 64}}
     with pytest.raises(CheckpointError) as err:
@@ -293,22 +293,22 @@ def test_resume_refuses_another_capture_profile_or_variant(spec, saved):
     settings = {**SETTINGS, "fit": {**SETTINGS["fit"], "lr_decoders": 5e-4, "seed": 1}}
     with pytest.raises(CheckpointError) as err:
         _resume(path, spec, settings)
-    assert str(err.value) == _refusal(path, "profile section 'fit' differs in lr_decoders, seed")
+    assert str(err.value) == _refusal(path, "preset section 'fit' differs in lr_decoders, seed")
 
     other_field = {**spec, "field": {**spec["field"], "init_std": 0.5}}
     with pytest.raises(CheckpointError) as err:
         _resume(path, other_field)
-    assert str(err.value) == _refusal(path, "profile section 'field' differs in init_std")
+    assert str(err.value) == _refusal(path, "preset section 'field' differs in init_std")
 
     gsplat = {**SETTINGS, "rasterizer": {"backend": "gsplat", "max_pairs": 1000}}
     with pytest.raises(CheckpointError) as err:
         _resume(path, {**spec, "variant": "no_offsets"}, gsplat)
     assert str(err.value) == _refusal(
-        path, "profile section 'rasterizer' differs in backend; the variant differs ('pig', now 'no_offsets')")
+        path, "preset section 'rasterizer' differs in backend; the variant differs ('pig', now 'no_offsets')")
 
 
 def test_resume_refuses_another_lpips_state(spec, saved):
-    """Same profile, but the LPIPS weights appeared (or went) since the checkpoint: the loss is another one."""
+    """Same preset, but the LPIPS weights appeared (or went) since the checkpoint: the loss is another one."""
     path = saved[0]
     on = {"lpips": {**TERMS["lpips"], "state": "on", "detail": ""}}
     with pytest.raises(CheckpointError) as err:
@@ -345,7 +345,7 @@ def test_loss_terms_read_back_and_an_older_file_reads_as_unknown(spec, saved, tm
 
 def test_resume_of_a_checkpoint_older_than_a_setting_takes_its_default(spec, saved, tmp_path):
     """A fit begun before pig had `avatar.offset_frame` ran with world offsets: it resumes under the default and
-    is refused when the profile now asks for local offsets; CUDA-graph replay of CG is free to change."""
+    is refused when the preset now asks for local offsets; CUDA-graph replay of CG is free to change."""
     state = torch.load(saved[0], weights_only=True)
     del state["spec"]["avatar"]["offset_frame"]
     older = tmp_path / "checkpoint.pt"
@@ -354,7 +354,7 @@ def test_resume_of_a_checkpoint_older_than_a_setting_takes_its_default(spec, sav
     assert _resume(older, spec)[0] == 2
     with pytest.raises(CheckpointError) as err:
         _resume(older, {**spec, "avatar": {**spec["avatar"], "offset_frame": "local"}})
-    assert str(err.value) == _refusal(older, "profile section 'avatar' differs in offset_frame")
+    assert str(err.value) == _refusal(older, "preset section 'avatar' differs in offset_frame")
     assert _resume(saved[0], {**spec, "precond": {**spec["precond"], "cg_graphs": not spec["precond"]["cg_graphs"]}})[0] == 2
 
 

@@ -82,7 +82,7 @@ def _entry_points(tmp: Path) -> dict[str, tuple[list[str], str]]:
         "pig.stages.tables": (["--dataset", "x", "--summaries", str(missing / "s.json"), "--variants", "pig",
                                "--output", str(tmp / "tables")], str(missing / "s.json")),
         "pig.stages.preprocess": (["--input", str(missing), "--output", str(tmp / "capture")], str(missing)),
-        "pig.stages.generate": (["--output", str(tmp / "raw"), "--profile", str(missing / "p.yaml")], str(missing / "p.yaml")),
+        "pig.stages.generate": (["--output", str(tmp / "raw"), "--preset", str(missing / "p.yaml")], str(missing / "p.yaml")),
         "pig.data.smc_writer": (["--format", "thuman4", "--input", str(missing), "--output", str(tmp / "smc"),
                                  "--body-model", str(tmp / "body.npz")], str(missing)),
     }
@@ -164,3 +164,37 @@ def test_a_real_process_with_pig_debug_prints_the_traceback(tmp_path):
     assert result.returncode == 1
     assert result.stderr.startswith("Traceback (most recent call last):")
     assert result.stderr.splitlines()[-1].startswith(f"ValueError: {tmp_path / 's.json'}: expected a summary")
+
+
+PRESET_STAGES = ["pig.stages.generate", "pig.stages.preprocess", "pig.stages.fit", "pig.stages.render",
+                 "pig.stages.evaluate", "pig.stages.tables", "pig.stages.animate"]
+
+
+@pytest.mark.parametrize("module", PRESET_STAGES)
+def test_profile_option_still_names_the_preset_with_a_note(tmp_path, capsys, monkeypatch, module):
+    """`--profile`, the option's name before compute presets were renamed apart from Snakemake's profiles, still
+    chooses the preset (here one that does not exist, which the error names) and says once what to type now."""
+    import importlib
+
+    parser_of = importlib.import_module(module).main
+    missing = str(tmp_path / "old.yaml")
+    with pytest.raises(SystemExit):
+        parser_of(["--profile", missing, "--help"])
+    out = capsys.readouterr()
+    note = f"{module.replace('pig.stages.', 'python -m pig.stages.')}: note: --profile is deprecated, use --preset " \
+           "(compute presets are in config/presets/)"
+    assert out.err.splitlines() == [note]
+    assert "--profile" not in out.out and "--preset PRESET" in out.out
+
+
+def test_deprecated_profile_option_chooses_the_preset(tmp_path, capsys, monkeypatch):
+    from pig.stages import generate
+
+    monkeypatch.delenv("PIG_DEBUG", raising=False)
+    missing = tmp_path / "old.yaml"
+    assert run_cli(generate.main, ["--output", str(tmp_path / "raw"), "--profile", str(missing)]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "python -m pig.stages.generate: note: --profile is deprecated, use --preset (compute presets are in "
+        "config/presets/)",
+        f"generate: error: preset file {missing} does not exist"]
+    assert not (tmp_path / "raw").exists()

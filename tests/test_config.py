@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from pig.config import ConfigError, load_profile, load_section, load_yaml
+from pig.config import ConfigError, load_preset, load_section, load_yaml
 
 
 @dataclass
@@ -18,7 +18,7 @@ class Section:
 
 
 def _yaml(tmp_path, text: str):
-    path = tmp_path / "profile.yaml"
+    path = tmp_path / "preset.yaml"
     path.write_text(text)
     return path
 
@@ -42,13 +42,13 @@ def test_yaml_nan_and_nested_values(tmp_path):
 
 
 def test_yaml_loading_runs_no_code(tmp_path):
-    with pytest.raises(ConfigError, match=r"profile\.yaml: not valid YAML: could not determine a constructor"):
+    with pytest.raises(ConfigError, match=r"preset\.yaml: not valid YAML: could not determine a constructor"):
         load_yaml(_yaml(tmp_path, "x: !!python/object/apply:os.system ['true']\n"))
 
 
 def test_section_takes_exponent_numbers(tmp_path):
-    profile = load_profile(_yaml(tmp_path, "fit:\n  weight: 1.0e8\n  iterations: 1e5\n  name: '1e8'\n"))
-    section = load_section(profile, "fit", Section)
+    preset = load_preset(_yaml(tmp_path, "fit:\n  weight: 1.0e8\n  iterations: 1e5\n  name: '1e8'\n"))
+    section = load_section(preset, "fit", Section)
     assert section == Section(weight=1e8, iterations=100_000, name="1e8")
     assert type(section.weight) is float and type(section.iterations) is int
 
@@ -63,4 +63,4 @@ def test_section_takes_exponent_numbers(tmp_path):
 def test_a_wrong_number_names_the_file_and_key(tmp_path, text, message):
     path = _yaml(tmp_path, f"fit:\n  {text}\n")
     with pytest.raises(ConfigError, match=f"^{re.escape(str(path))}: {message}"):
-        load_section(load_profile(path), "fit", Section)
+        load_section(load_preset(path), "fit", Section)

@@ -666,12 +666,12 @@ def dna_subject(tmp_path_factory):
     return root, dataset, source
 
 
-def _preprocess(dna_subject, out: Path, profile: str):
+def _preprocess(dna_subject, out: Path, preset: str):
     from pig.data.capture import Capture
     from pig.stages.preprocess import main
 
     root, dataset, _ = dna_subject
-    assert main(["--input", str(root), "--output", str(out), "--profile", profile, "--dataset", str(dataset),
+    assert main(["--input", str(root), "--output", str(out), "--preset", preset, "--dataset", str(dataset),
                  "--no-progress"]) == 0
     return Capture.load(out)
 
@@ -691,12 +691,12 @@ def test_preprocess_format_dna_end_to_end(dna_subject, tmp_path):
     assert report["projection_check"]["passed"] and report["format"] == "DnaCapture"
 
 
-def test_half_resolution_profile_option(dna_subject, tmp_path):
-    """The profiles' dna override (scale 0.5, nearest masks) against the full-resolution output: 2x2 block
+def test_half_resolution_preset_option(dna_subject, tmp_path):
+    """The presets' dna override (scale 0.5, nearest masks) against the full-resolution output: 2x2 block
     means for images, every second pixel for masks, K scaled about pixel centres (cx' = (cx + 0.5) / 2 - 0.5)."""
-    full_profile = tmp_path / "full.yaml"
-    full_profile.write_text("preprocess:\n  scale: 1.0\n")
-    full = _preprocess(dna_subject, tmp_path / "full", str(full_profile))
+    full_preset = tmp_path / "full.yaml"
+    full_preset.write_text("preprocess:\n  scale: 1.0\n")
+    full = _preprocess(dna_subject, tmp_path / "full", str(full_preset))
     half = _preprocess(dna_subject, tmp_path / "half", "test")
     for name, cam in full.cameras.items():
         small = half.cameras[name]
@@ -711,7 +711,7 @@ def test_half_resolution_profile_option(dna_subject, tmp_path):
             if frame not in half.split["novel_pose"]["frames"]:
                 continue  # training views are JPEG: lossy, not held to a block mean at half a level
             blocks = full.image(name, frame).reshape(cam.height // 2, 2, cam.width // 2, 2, 3).mean(axis=(1, 3))
-            reference = np.where(mask[..., None], blocks, 0.0)  # the test profile's background is black
+            reference = np.where(mask[..., None], blocks, 0.0)  # the test preset's background is black
             np.testing.assert_allclose(half.image(name, frame), reference, atol=0.5 / 255 + 1e-6)
 
 
@@ -761,9 +761,9 @@ def test_synthetic_capture_preprocess_matches_the_thuman4_path(synthetic_dna, tm
     from pig.stages.preprocess import main
 
     root, model_path, source = synthetic_dna
-    profile = tmp_path / "profile.yaml"
+    preset = tmp_path / "preset.yaml"
     # The check's default tolerances (5 cm body, 20 cm garment; pig/data/projection_check.py) cover the skirt.
-    profile.write_text("preprocess:\n  scale: 1.0\n")
+    preset.write_text("preprocess:\n  scale: 1.0\n")
     outputs = {}
     for fmt, raw in (("dna", root), ("thuman4", source.source)):
         dataset = tmp_path / f"{fmt}.yaml"
@@ -771,7 +771,7 @@ def test_synthetic_capture_preprocess_matches_the_thuman4_path(synthetic_dna, tm
         dataset.write_text(f"name: {fmt}\nformat: {fmt}\nbody_model: {model_path}\n"
                            f"split:\n  novel_view_cameras: {cameras}\n  novel_pose_fraction: 0.2\n")
         outputs[fmt] = tmp_path / fmt
-        assert main(["--format", fmt, "--input", str(raw), "--output", str(outputs[fmt]), "--profile", str(profile),
+        assert main(["--format", fmt, "--input", str(raw), "--output", str(outputs[fmt]), "--preset", str(preset),
                      "--dataset", str(dataset), "--no-progress"]) == 0
     reports = {fmt: json.loads((out / "report.json").read_text())["projection_check"] for fmt, out in outputs.items()}
     assert reports["dna"]["passed"]

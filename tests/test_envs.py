@@ -39,3 +39,16 @@ def test_environment_installs_the_package_dependencies_and_no_path(path):
     (pinned,) = torch.specifier
     assert pinned.operator == "==" and next(r for r in wanted if r.name == "torch").specifier.contains(pinned.version)
     assert pinned.version.endswith("+cpu") == (path.name == "pig.yaml")
+
+
+@pytest.mark.parametrize("preset, cuda_rules", [
+    ("test", set()), ("cpu-demo", set()), ("paper", {"fit_avatar", "render_split", "evaluate", "animate"})])
+def test_rules_take_the_cuda_environment_where_the_preset_gives_them_a_gpu(preset, cuda_rules):
+    """workflow/rules/common.smk's `conda_env` (plain Python): its paths, relative to the rules' folder as Snakemake
+    reads a rule's `conda:`, name the two files under envs/."""
+    namespace = {"config": {"preset": preset}}
+    exec(compile((REPO / "workflow" / "rules" / "common.smk").read_text(), "common.smk", "exec"), namespace)
+    rules = {"preprocess_capture", "fit_avatar", "render_split", "evaluate", "montage_split", "make_tables", "animate"}
+    envs = {rule: (REPO / "workflow" / "rules" / namespace["conda_env"](rule)).resolve() for rule in rules}
+    assert {rule for rule, path in envs.items() if path.name == "pig-cuda.yaml"} == cuda_rules
+    assert {path for path in envs.values()} <= set(ENVS)

@@ -115,15 +115,15 @@ def test_model_outputs_levels_and_novel_pose_override(standin):
 # ---- fit stage on a generated capture (slow: generation + two short fits) ----
 
 
-def _profile(tmp_path, avatar=None, **fit):
-    from pig.config import load_profile
+def _preset(tmp_path, avatar=None, **fit):
+    from pig.config import load_preset
 
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["fit"].update(fit)
-    profile["avatar"].update(avatar or {})
-    path = tmp_path / "profile.yaml"
-    path.write_text(yaml.safe_dump(profile))
+    preset = load_preset("test")
+    preset.pop("_path")
+    preset["fit"].update(fit)
+    preset["avatar"].update(avatar or {})
+    path = tmp_path / "preset.yaml"
+    path.write_text(yaml.safe_dump(preset))
     return str(path)
 
 
@@ -133,9 +133,9 @@ def test_short_fit_learns_and_resumes_to_the_same_result(small_capture, tmp_path
 
     from pig.avatar.training import fit
 
-    profile = _profile(tmp_path, iterations=30, eval_every=15, checkpoint_minutes=0.0)
+    preset = _preset(tmp_path, iterations=30, eval_every=15, checkpoint_minutes=0.0)
     capture = small_capture
-    reference = fit(capture, tmp_path / "full", profile)
+    reference = fit(capture, tmp_path / "full", preset)
     log = pd.read_csv(tmp_path / "full" / "train_log.csv")
     assert log["iteration"].iloc[-1] == 30 and (tmp_path / "full" / "train_log.png").exists()
     assert log["loss"].iloc[-6:].mean() < log["loss"].iloc[1:7].mean()
@@ -153,10 +153,10 @@ def test_short_fit_learns_and_resumes_to_the_same_result(small_capture, tmp_path
             raise Killed
 
     with pytest.raises(Killed):
-        fit(capture, tmp_path / "resumed", profile, on_iteration=kill_at_12)
+        fit(capture, tmp_path / "resumed", preset, on_iteration=kill_at_12)
     assert not (tmp_path / "resumed" / "avatar.pt").exists()
     assert torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=True)["iteration"] == 12
-    resumed = fit(capture, tmp_path / "resumed", profile)
+    resumed = fit(capture, tmp_path / "resumed", preset)
     resumed_log = pd.read_csv(tmp_path / "resumed" / "train_log.csv")
     assert resumed_log["iteration"].tolist() == log["iteration"].tolist()
     a, b = torch.load(reference, weights_only=True), torch.load(resumed, weights_only=True)
@@ -182,7 +182,7 @@ def test_leftover_checkpoint_of_another_fit_is_not_resumed(small_capture, tmp_pa
     params, frames = SmplxParams.load(other / "smplx.npz")
     params.transl = params.transl + 0.05
     params.save(other / "smplx.npz", frame_ids=frames)
-    profile = _profile(tmp_path, iterations=4, eval_every=4, checkpoint_minutes=0.0)
+    preset = _preset(tmp_path, iterations=4, eval_every=4, checkpoint_minutes=0.0)
 
     class Killed(Exception):
         pass
@@ -191,16 +191,16 @@ def test_leftover_checkpoint_of_another_fit_is_not_resumed(small_capture, tmp_pa
         raise Killed
 
     with pytest.raises(Killed):
-        fit(other, tmp_path / "pig", profile, on_iteration=kill)
+        fit(other, tmp_path / "pig", preset, on_iteration=kill)
     state = tmp_path / "pig" / "checkpoint.pt"
     written = state.read_bytes()
     with pytest.raises(CheckpointError) as err:
-        fit(small_capture, tmp_path / "pig", profile)
+        fit(small_capture, tmp_path / "pig", preset)
     assert str(err.value) == (f"{state}: checkpoint of another fit, not resumed: the capture differs (smplx); "
                               "delete it to start the fit over, or point --output elsewhere")
-    with pytest.raises(CheckpointError, match=r"not resumed: profile section 'avatar' differs in offsets; "
+    with pytest.raises(CheckpointError, match=r"not resumed: preset section 'avatar' differs in offsets; "
                                               r"the variant differs \('pig', now 'no_offsets'\); delete it"):
-        fit(other, tmp_path / "pig", profile, variant="no_offsets")
+        fit(other, tmp_path / "pig", preset, variant="no_offsets")
     assert state.read_bytes() == written and not (tmp_path / "pig" / "avatar.pt").exists()
 
 
@@ -250,10 +250,10 @@ def test_killed_and_resumed_fit_draws_the_same_batches_and_weights(small_capture
     iteration, and ends with bit-identical weights."""
     from pig.avatar.training import fit
 
-    profile = _profile(tmp_path, {"num_anchors": 300}, iterations=7, eval_every=100, checkpoint_minutes=0.0, views=2,
+    preset = _preset(tmp_path, {"num_anchors": 300}, iterations=7, eval_every=100, checkpoint_minutes=0.0, views=2,
                        timesteps=2, prefetch=3, loader_workers=2, view_cache=4)
     record = _record_batches(monkeypatch)
-    reference = fit(small_capture, tmp_path / "full", profile)
+    reference = fit(small_capture, tmp_path / "full", preset)
     uninterrupted = list(record)
     record.clear()
 
@@ -262,8 +262,8 @@ def test_killed_and_resumed_fit_draws_the_same_batches_and_weights(small_capture
             raise _Killed
 
     with pytest.raises(_Killed):
-        fit(small_capture, tmp_path / "resumed", profile, on_iteration=kill_at_3)
-    resumed = fit(small_capture, tmp_path / "resumed", profile)
+        fit(small_capture, tmp_path / "resumed", preset, on_iteration=kill_at_3)
+    resumed = fit(small_capture, tmp_path / "resumed", preset)
     # Iterations 0-2, then 3-6 after the resume (the killed run had staged 3-5 ahead: dropped, drawn again).
     assert [r[0] for r in record] == list(range(7)) and record == uninterrupted
     assert len({(r[1], tuple(b[:2] for b in r[2])) for r in record}) > 4  # the batches differ between iterations
@@ -286,20 +286,20 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     capture_dir = tmp_path / "capture"
     shutil.copytree(small_capture, capture_dir)
     small = {"num_anchors": 300}
-    profile = _profile(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=0.0, prefetch=2, view_cache=64)
+    preset = _preset(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=0.0, prefetch=2, view_cache=64)
     def kill_at_3(iteration):
         if iteration == 3:
             raise _Killed
 
     with pytest.raises(_Killed):
-        fit(capture_dir, tmp_path / "pig", profile, on_iteration=kill_at_3)
+        fit(capture_dir, tmp_path / "pig", preset, on_iteration=kill_at_3)
     state, log = tmp_path / "pig" / "checkpoint.pt", tmp_path / "pig" / "train_log.csv"
     saved = state.read_bytes(), log.read_bytes()
 
     # The view whose first use after the resume (at iteration index 3) comes last.
     capture = Capture.load(capture_dir)
     train = capture.split["train"]
-    sampler = Sampler(0, 2, tuple(tuple(train["cameras"]) for _ in train["frames"]), 1, 2)  # the test profile's fit
+    sampler = Sampler(0, 2, tuple(tuple(train["cameras"]) for _ in train["frames"]), 1, 2)  # the test preset's fit
     first_use = {}
     for i in range(3, 12):
         for step, cams in sampler.picks(i).steps:
@@ -313,9 +313,9 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     path.write_bytes(data[:-12] + bytes(12))
 
     done = []
-    resume_profile = _profile(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=1e6, prefetch=2, view_cache=64)
+    resume_preset = _preset(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=1e6, prefetch=2, view_cache=64)
     with pytest.raises(CaptureError) as err:
-        fit(capture_dir, tmp_path / "pig", resume_profile, on_iteration=done.append)
+        fit(capture_dir, tmp_path / "pig", resume_preset, on_iteration=done.append)
     assert done == list(range(4, due + 1))  # trained up to the batch that needs the file
     assert error_line(err.value).startswith(f"{path}: truncated")
     assert (state.read_bytes(), log.read_bytes()) == saved and not (tmp_path / "pig" / "avatar.pt").exists()
@@ -333,5 +333,5 @@ def test_fit_without_training_images_names_the_capture(small_capture, tmp_path):
     for folder in (capture_dir / "images").iterdir():
         shutil.rmtree(folder)
     with pytest.raises(CaptureError, match=r"capture: no image and mask of the train split \(cameras \['cam00'"):
-        fit(capture_dir, tmp_path / "pig", _profile(tmp_path))
+        fit(capture_dir, tmp_path / "pig", _preset(tmp_path))
     assert not any((tmp_path / "pig" / name).exists() for name in ("avatar.pt", "checkpoint.pt", "train_log.csv"))

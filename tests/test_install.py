@@ -1,4 +1,4 @@
-"""A non-editable install (`pip install .`, as a Snakemake conda environment would make) finds the compute profiles
+"""A non-editable install (`pip install .`, as a Snakemake conda environment would make) finds the compute presets
 and the shipped motions."""
 import os
 import shutil
@@ -13,11 +13,11 @@ REPO = Path(__file__).resolve().parent.parent
 PROBE = """
 import pig
 from importlib.resources import files
-from pig.config import ConfigError, load_profile
+from pig.config import ConfigError, load_preset
 print(pig.__file__)
 print(sorted(p.name for p in (files("pig.data") / "motions").iterdir()))
 try:
-    print(load_profile("test")["_path"])
+    print(load_preset("test")["_path"])
 except ConfigError as err:
     print(err)
 """
@@ -47,15 +47,15 @@ def probe(site: Path, cwd: Path) -> list[str]:
     return out.stdout.splitlines()
 
 
-def test_installed_copy_finds_profiles_from_the_checkout(installed):
-    module, motions, profile = probe(installed, REPO)
+def test_installed_copy_finds_presets_from_the_checkout(installed):
+    module, motions, preset = probe(installed, REPO)
     assert Path(module).is_relative_to(installed)  # the installed copy, not the checkout, was imported
     assert "demo.npz" in motions
-    assert Path(profile) == REPO / "config" / "profiles" / "test.yaml"
+    assert Path(preset) == REPO / "config" / "presets" / "test.yaml"
 
 
-def test_installed_copy_elsewhere_says_where_profiles_are_sought(installed, tmp_path):
+def test_installed_copy_elsewhere_says_where_presets_are_sought(installed, tmp_path):
     module, _, message = probe(installed, tmp_path)
     assert Path(module).is_relative_to(installed)
-    assert message == (f"unknown profile 'test': no config/profiles/ in the working directory {tmp_path} or beside "
+    assert message == (f"unknown preset 'test': no config/presets/ in the working directory {tmp_path} or beside "
                        f"the package ({installed}); run from the pig checkout or give a path to a .yaml file")

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from pig.config import load_profile, load_section
+from pig.config import load_preset, load_section
 from pig.field.latent_grid import FieldConfig, LatentGrid
 from pig.field.precondition import PrecondConfig
 
@@ -81,8 +81,8 @@ def test_preconditioned_levels_read_x_not_u(rng):
     torch.testing.assert_close(grid(points), plain(points), rtol=1e-10, atol=1e-12)
 
 
-def test_profile_and_bad_input():
-    cfg = load_section(load_profile("test"), "field", FieldConfig)
+def test_preset_and_bad_input():
+    cfg = load_section(load_preset("test"), "field", FieldConfig)
     grid = LatentGrid.from_config(cfg, PrecondConfig(), [-1, -1, -1], [1, 1, 1])
     assert grid(torch.zeros(5, 3)).shape == (5, cfg.features)
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):

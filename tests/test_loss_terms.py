@@ -11,7 +11,7 @@ import yaml
 
 from pig.avatar.checkpoint import CheckpointError, loss_terms
 from pig.avatar.losses import fit_note, lpips_term
-from pig.config import ConfigError, load_profile, load_section
+from pig.config import ConfigError, load_preset, load_section
 from pig.metrics.lpips import LPIPS
 from pig.avatar.training import FitConfig
 
@@ -119,11 +119,11 @@ def test_lpips_term_records_each_state_and_its_note(tmp_path, empty_hub, capsys)
 def test_lpips_weights_option_is_checked(tmp_path):
     with pytest.raises(ConfigError, match=r"^fit\.lpips_weights must be 'pretrained' or 'random', found 'randm'$"):
         FitConfig(lpips_weights="randm")
-    path = tmp_path / "profile.yaml"
+    path = tmp_path / "preset.yaml"
     path.write_text(yaml.safe_dump({"fit": {"lpips_weights": "randm"}}))
-    with pytest.raises(ConfigError, match=r"profile\.yaml: section 'fit'\.lpips_weights: expected one of "
+    with pytest.raises(ConfigError, match=r"preset\.yaml: section 'fit'\.lpips_weights: expected one of "
                                           r"\['pretrained', 'random'\], found 'randm'"):
-        load_section(load_profile(path), "fit", FitConfig)
+        load_section(load_preset(path), "fit", FitConfig)
     with pytest.raises(ConfigError, match="fit.lpips_weights is 'random', which reads no weights file, but "
                                           "fit.lpips_backbone_weights or fit.lpips_linear_weights is set"):
         FitConfig(lpips_weights="random", lpips_linear_weights="vgg.pth")
@@ -132,15 +132,15 @@ def test_lpips_weights_option_is_checked(tmp_path):
 # ---- through the fit, render, evaluate and tables stages ----
 
 
-def _profile(tmp_path, **fit) -> str:
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["fit"].update(fit)
-    profile["avatar"].update(num_anchors=300)
-    profile["evaluate"].update(device="cpu", timing_frames=1)
-    profile["rasterizer"].update(backend="cpu")
-    path = tmp_path / "profile.yaml"
-    path.write_text(yaml.safe_dump(profile))
+def _preset(tmp_path, **fit) -> str:
+    preset = load_preset("test")
+    preset.pop("_path")
+    preset["fit"].update(fit)
+    preset["avatar"].update(num_anchors=300)
+    preset["evaluate"].update(device="cpu", timing_frames=1)
+    preset["rasterizer"].update(backend="cpu")
+    path = tmp_path / "preset.yaml"
+    path.write_text(yaml.safe_dump(preset))
     return str(path)
 
 
@@ -166,10 +166,10 @@ def test_fit_without_the_weights_records_it_and_every_table_row_says_so(small_ca
     from pig.stages.render import render_split
     from pig.stages.tables import make_tables
 
-    profile = _profile(tmp_path, iterations=3, eval_every=3, checkpoint_minutes=0.0, weight_lpips=2.0, lpips_net="alex")
+    preset = _preset(tmp_path, iterations=3, eval_every=3, checkpoint_minutes=0.0, weight_lpips=2.0, lpips_net="alex")
     variant = tmp_path / "results" / "synthetic" / "subject00" / "pig"
     with pytest.raises(_Killed):
-        fit(small_capture, variant, profile, on_iteration=_kill_at(2))
+        fit(small_capture, variant, preset, on_iteration=_kill_at(2))
     state = variant / "checkpoint.pt"
     [record] = loss_terms(state).values()
     assert record["state"] == "weights absent" and record["net"] == "alex" and record["weight"] == 2.0
@@ -179,14 +179,14 @@ def test_fit_without_the_weights_records_it_and_every_table_row_says_so(small_ca
     _write_weights(LPIPS("alex", weights="random"), empty_hub)  # the weights appear before the resume
     written = state.read_bytes()
     with pytest.raises(CheckpointError) as err:
-        fit(small_capture, variant, profile)
+        fit(small_capture, variant, preset)
     assert str(err.value) == (f"{state}: checkpoint of another fit, not resumed: the LPIPS term differs "
                               "('weights absent', now 'on'); delete it to start the fit over, or point --output elsewhere")
     assert state.read_bytes() == written
 
     for path in empty_hub.iterdir():
         path.unlink()
-    avatar = fit(small_capture, variant, profile)
+    avatar = fit(small_capture, variant, preset)
     assert loss_terms(avatar) == {"lpips": record}
     log = pd.read_csv(variant / "train_log.csv")
     assert log["iteration"].tolist() == [0, 1, 2, 3] and (log["lpips_term"] == "weights absent").all()
@@ -220,8 +220,8 @@ def test_fit_without_the_weights_records_it_and_every_table_row_says_so(small_ca
 def test_fit_with_random_lpips_trains_with_the_term(small_capture, tmp_path, empty_hub):
     from pig.avatar.training import fit
 
-    profile = _profile(tmp_path, iterations=2, eval_every=2, weight_lpips=2.0, lpips_net="alex", lpips_weights="random")
-    avatar = fit(small_capture, tmp_path / "pig", profile)
+    preset = _preset(tmp_path, iterations=2, eval_every=2, weight_lpips=2.0, lpips_net="alex", lpips_weights="random")
+    avatar = fit(small_capture, tmp_path / "pig", preset)
     assert loss_terms(avatar)["lpips"] == {"weight": 2.0, "net": "alex", "state": "random weights", "detail": ""}
     log = pd.read_csv(tmp_path / "pig" / "train_log.csv")
     assert (log["lpips_term"] == "random weights").all()

@@ -53,7 +53,7 @@ def raw(tmp_path_factory) -> Path:
 
 
 def _preprocess(raw: Path, out: Path, *extra: str) -> int:
-    return run_cli(preprocess.main, ["--input", str(raw), "--output", str(out), "--profile", "test", "--no-progress", *extra])
+    return run_cli(preprocess.main, ["--input", str(raw), "--output", str(out), "--preset", "test", "--no-progress", *extra])
 
 
 # -- preprocess: the raw capture, a data root and unrelated files are safe ------------------------------------
@@ -128,7 +128,7 @@ def _variant(tmp_path: Path) -> tuple[Path, Path, dict[str, bytes]]:
 
 def test_render_pointed_at_a_variant_folder_keeps_avatar_pt(tmp_path, capsys):
     variant, capture, before = _variant(tmp_path)
-    args = ["--capture", str(capture), "--split", "novel_view", "--profile", "test"]
+    args = ["--capture", str(capture), "--split", "novel_view", "--preset", "test"]
     assert run_cli(render.main, ["--checkpoint", str(variant / "avatar.pt"), "--output", str(variant), *args, "--overwrite"]) == 1
     assert (f"render: error: {variant}: the output contains the input {variant / 'avatar.pt'}; "
             "choose another output folder") in capsys.readouterr().err
@@ -152,7 +152,7 @@ def test_a_folder_marked_by_another_stage_is_refused(tmp_path):
 def test_evaluate_never_writes_into_the_renders_or_over_foreign_files(tmp_path, capsys):
     variant, capture, before = _variant(tmp_path)
     renders = variant / "renders" / "novel_view"
-    args = ["--capture", str(capture), "--renders", str(renders), "--split", "novel_view", "--profile", "test"]
+    args = ["--capture", str(capture), "--renders", str(renders), "--split", "novel_view", "--preset", "test"]
     assert run_cli(evaluate.main, [*args, "--output", str(renders)]) == 1
     assert f"evaluate: error: {renders}: the output is the input {renders}" in capsys.readouterr().err
     metrics = variant / "metrics"
@@ -167,7 +167,7 @@ def test_evaluate_never_writes_into_the_renders_or_over_foreign_files(tmp_path, 
 
 def test_fit_keeps_files_it_did_not_write(tmp_path, capsys):
     variant, capture, before = _variant(tmp_path)
-    args = ["--capture", str(capture), "--profile", "test", "--device", "cpu"]
+    args = ["--capture", str(capture), "--preset", "test", "--device", "cpu"]
     assert run_cli(fit.main, [*args, "--output", str(variant)]) == 1
     assert (f"fit: error: {variant}: holds files the fit stage did not write (avatar.pt, train_log.csv); "
             "pass --overwrite") in capsys.readouterr().err
@@ -244,8 +244,8 @@ def test_tables_keep_a_foreign_file_of_the_same_name(tmp_path, capsys):
 # -- generate: reruns, foreign folders, orphans ------------------------------------------------------------------
 
 def test_generate_replaces_its_own_capture_without_overwrite_and_removes_orphans(tmp_path, dead_pid, live_pid):
-    profile = tmp_path / "tiny.yaml"
-    profile.write_text(yaml.safe_dump({"synthetic": {"cameras": 1, "frames": 1, "width": 16, "height": 16,
+    preset = tmp_path / "tiny.yaml"
+    preset.write_text(yaml.safe_dump({"synthetic": {"cameras": 1, "frames": 1, "width": 16, "height": 16,
                                                      "workers": 1, "supersample": 1}}))
     out = tmp_path / "data" / "subject00"
     out.mkdir(parents=True)  # an earlier generated capture, as far as the stage can tell
@@ -253,7 +253,7 @@ def test_generate_replaces_its_own_capture_without_overwrite_and_removes_orphans
     (out / "calibration.json").write_text("stale")
     for name in (f".subject00.{dead_pid}.tmp", f".subject00.{live_pid}.tmp"):
         (out.parent / name / "images").mkdir(parents=True)
-    assert run_cli(generate.main, ["--output", str(out), "--profile", str(profile), "--quiet"]) == 0
+    assert run_cli(generate.main, ["--output", str(out), "--preset", str(preset), "--quiet"]) == 0
     assert json.loads((out / "calibration.json").read_text())["cam00"]["imgSize"] == [16, 16]
     assert sorted(p.name for p in out.parent.iterdir()) == [f".subject00.{live_pid}.tmp", "subject00"]
 

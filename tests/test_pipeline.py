@@ -1,7 +1,8 @@
 """The evaluation end of the pipeline: EXR round trip, table layout from known summaries, and the whole
-workflow through Snakemake on the tiny `test` profile (generate -> preprocess -> fit -> render -> evaluate -> tables)."""
+workflow through Snakemake on the tiny `test` preset (generate -> preprocess -> fit -> render -> evaluate -> tables)."""
 from __future__ import annotations
 
+import csv
 import json
 import math
 import shutil
@@ -17,7 +18,7 @@ from pig.data.exr import read_exr, write_exr
 from pig.stages.tables import BLANK_ROW, make_tables
 
 REPO = Path(__file__).resolve().parent.parent
-# The test profile scores LPIPS with AlexNet; the tables name the backbone in the header.
+# The test preset scores LPIPS with AlexNet; the tables name the backbone in the header.
 METRIC_COLUMNS = [f"{s}_{m}" for s in ("novel_view", "novel_pose") for m in ("psnr", "ssim", "lpips_alex", "fid")]
 
 
@@ -90,21 +91,22 @@ def test_tables_reject_missing_variant(tmp_path):
 
 @pytest.mark.slow
 def test_workflow_end_to_end(tmp_path):
-    """`snakemake` on the test profile from an empty working directory to the synthetic tables; the working
-    directory and the profile's path hold spaces, which every rule's command must quote."""
+    """`snakemake` on the test preset from an empty working directory to its default target (the synthetic
+    tables and the montages), then `snakemake --report`; the working directory and the preset's path hold
+    spaces, which every rule's command must quote."""
     if shutil.which("snakemake") is None:
         pytest.skip("snakemake is not on PATH")
     work = tmp_path / "work dir"
     work.mkdir()
     (work / "config").symlink_to(REPO / "config")
-    # The test profile with a longer fit: its 40 iterations are sized for the fit tests, not for a
+    # The test preset with a longer fit: its 40 iterations are sized for the fit tests, not for a
     # trained avatar; 200 take ~20 s on two quiet cores.
-    profile = yaml.safe_load((REPO / "config" / "profiles" / "test.yaml").read_text())
-    profile["fit"].update(iterations=200, eval_every=100)
-    (work / "pipeline profile.yaml").write_text(yaml.safe_dump(profile))
-    command = ["snakemake", "results/tables/synthetic.csv", "--snakefile", str(REPO / "Snakefile"),
-               "--directory", str(work), "--cores", "2", "--config", f"profile={work / 'pipeline profile.yaml'}"]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    preset = yaml.safe_load((REPO / "config" / "presets" / "test.yaml").read_text())
+    preset["fit"].update(iterations=200, eval_every=100)
+    (work / "pipeline preset.yaml").write_text(yaml.safe_dump(preset))
+    command = ["snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(work),
+               "--config", f"preset={work / 'pipeline preset.yaml'}"]
+    done = subprocess.run([*command, "--cores", "2"], capture_output=True, text=True, timeout=600)
     logs = "\n".join(f"== {p}\n{p.read_text()[-2000:]}" for p in sorted(work.glob("results/**/logs/*.log")))
     assert done.returncode == 0, f"{done.stdout[-3000:]}\n{done.stderr[-5000:]}\n{logs}"
 
@@ -129,3 +131,22 @@ def test_workflow_end_to_end(tmp_path):
         assert pngs and len(pngs) == len(list(renders.glob(f"{split}/lod0/*/*.exr")))
         exr = read_exr(pngs[0].with_suffix(".exr"))
         assert set(exr) == {"A", "Z"} and 0 <= exr["A"].min() and exr["A"].max() <= 1 + 1e-5
+
+    # The report: the workflow's description, the tables in their captions, the training plot and a montage of
+    # each split, each embedded.
+    montages = [f"results/synthetic/subject00/pig/montage/{split}.png" for split in ("novel_view", "novel_pose")]
+    for montage in montages:
+        assert (work / montage).stat().st_size > 10_000
+    done = subprocess.run([*command, "--report", "report.html"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    html = (work / "report.html").read_text()
+    assert "PiG-Avatar: an animatable Gaussian-splat avatar from multi-view video" in html
+    assert "compute preset <tt" in html and "dir/pipeline preset.yaml</tt>" in html
+    with open(tables / "synthetic.csv") as table:
+        pig_row = next(row for row in csv.DictReader(table) if row["variant"] == "pig")
+    assert f"<td>{pig_row['novel_view_psnr']}</td>" in html  # the main table, as a table in its caption
+    assert "<th class=\\\"head\\\">lod</th>" in html  # the LOD table
+    assert "System Message" not in html  # docutils' notice of a broken caption
+    for path in ["results/tables/synthetic_training.png", *montages]:
+        assert html.count(f'"{path}"') >= 1, path
+    assert html.count('"mime_type": "image/png"') == 3

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from pig.config import load_profile, load_section
+from pig.config import load_preset, load_section
 from pig.field.knn_graph import knn_laplacian
 from pig.field.knn_solve import CGSystem, FactorizedSystem
 from pig.field.latent_grid import FieldConfig, LatentGrid
@@ -202,7 +202,7 @@ def test_initial_value_is_exact_for_any_lambda(case, lam):
 
 @pytest.mark.parametrize("solver", ["factorized", "cg"])
 def test_configured_anchors_start_exactly_at_their_initial_positions(solver):
-    """The fit's path (precondition_anchors from the profile section) at anchor lambda 1e8, float32 metres."""
+    """The fit's path (precondition_anchors from the preset section) at anchor lambda 1e8, float32 metres."""
     x_init = (torch.rand(300, 3, generator=torch.Generator().manual_seed(5)) * torch.tensor([0.6, 1.8, 0.3])).float()
     cfg = PrecondConfig(anchor_lambda=1e8, knn_solver=solver)
     anchors = precondition_anchors(x_init, cfg)
@@ -306,8 +306,8 @@ def test_cg_substitution_uses_separate_warm_starts():
 
 
 def test_param_groups_follow_the_paper_schedule():
-    cfg = load_section(load_profile("paper"), "precond", PrecondConfig)
-    field_cfg = load_section(load_profile("paper"), "field", FieldConfig)
+    cfg = load_section(load_preset("paper"), "precond", PrecondConfig)
+    field_cfg = load_section(load_preset("paper"), "field", FieldConfig)
     assert field_cfg.resolutions == [8, 24, 40, 56, 72, 88] and field_cfg.features == 16
     np.testing.assert_allclose(cfg.grid_lambdas(6), [2 * 1.25**g for g in range(6)])
     small = FieldConfig(resolutions=[2, 3, 4], features=2)

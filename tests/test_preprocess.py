@@ -31,7 +31,7 @@ HOLD_OUT_LAST = SplitConfig(novel_view_cameras=["cam01"], novel_pose_frames=[1, 
 
 
 def _run(root: Path, out: Path, *extra: str) -> int:
-    return run_cli(main, ["--input", str(root), "--output", str(out), "--profile", "test", "--no-progress", *extra])
+    return run_cli(main, ["--input", str(root), "--output", str(out), "--preset", "test", "--no-progress", *extra])
 
 
 def _leftovers(folder: Path) -> list[str]:
@@ -211,13 +211,13 @@ BAD_RUNS = {
     "frame counts disagree": (lambda t, r: (r / "masks" / "cam00" / "00000001.jpg").unlink() or [],
                               r"masks/cam00: 1 of the 3 frames in smpl_params\.npz have no file"),
     "missing root": (lambda t, r: ["--input", str(t / "absent")], r"absent not found: put the subject there"),
-    "unknown profile key": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  scael: 2\n")],
+    "unknown preset key": (lambda t, r: ["--preset", _dataset_yaml(t, "preprocess:\n  scael: 2\n")],
                             r"section 'preprocess': unknown key\(s\) \['scael'\]"),
-    "unknown encoding": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  train_encoding: webp\n")],
+    "unknown encoding": (lambda t, r: ["--preset", _dataset_yaml(t, "preprocess:\n  train_encoding: webp\n")],
                          r"section 'preprocess'\.train_encoding: expected one of \['jpeg', 'png'\], found 'webp'"),
-    "JPEG quality out of range": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  jpeg_quality: 101\n")],
+    "JPEG quality out of range": (lambda t, r: ["--preset", _dataset_yaml(t, "preprocess:\n  jpeg_quality: 101\n")],
                                   r"preprocess\.jpeg_quality must be in 1\.\.100, found 101"),
-    "PNG level out of range": (lambda t, r: ["--profile", _dataset_yaml(t, "preprocess:\n  png_compression: 10\n")],
+    "PNG level out of range": (lambda t, r: ["--preset", _dataset_yaml(t, "preprocess:\n  png_compression: 10\n")],
                                r"preprocess\.png_compression must be a zlib level in 0\.\.9, found 10"),
     "no novel-view camera": (
         lambda t, r: ["--dataset", _dataset_yaml(t, "name: x\nsplit:\n  novel_view_count: 0\n")],
@@ -253,7 +253,7 @@ def test_bad_input_exits_with_a_message_and_writes_nothing(tmp_path, capsys, cas
     root = write_thuman4(tmp_path / "s", cameras=3, frames=3)
     make_args, message = BAD_RUNS[case]
     extra = make_args(tmp_path, root)
-    args = ["--input", str(root), "--output", str(tmp_path / "out"), "--profile", "test", "--no-progress", *extra]
+    args = ["--input", str(root), "--output", str(tmp_path / "out"), "--preset", "test", "--no-progress", *extra]
     assert run_cli(main, args) == 1
     err = capsys.readouterr().err
     assert re.search(message, err), err
@@ -516,14 +516,14 @@ def test_a_foreign_folder_where_the_work_would_be_kept_is_left_alone(resume_raw,
     assert [p.name for p in mine.parent.iterdir()] == ["notes.txt"] and _leftovers(tmp_path) == [".out.partial"]
 
 
-# -- the synthetic capture (engineer A's generator, `test` profile) -------------------------------------------
+# -- the synthetic capture (engineer A's generator, `test` preset) -------------------------------------------
 
 @pytest.fixture(scope="module")
 def synthetic_raw(tmp_path_factory):
-    from pig.config import load_profile
+    from pig.config import load_preset
     from pig.data.synthetic import SyntheticConfig, generate_capture
 
-    cfg = load_section(load_profile("test"), "synthetic", SyntheticConfig)
+    cfg = load_section(load_preset("test"), "synthetic", SyntheticConfig)
     return generate_capture(tmp_path_factory.mktemp("synthetic") / "subject00", cfg, progress=False)
 
 

@@ -84,7 +84,7 @@ def test_dna_subject_without_suffix_is_a_folder_of_its_one_sequence(tmp_path):
 
 def _workflow_helpers(datasets: dict[str, Path]) -> dict:
     """The functions of workflow/rules/common.smk (plain Python) bound to a workflow config."""
-    namespace = {"config": {"profile": "test", "datasets": {k: str(v) for k, v in datasets.items()}}}
+    namespace = {"config": {"preset": "test", "datasets": {k: str(v) for k, v in datasets.items()}}}
     exec(compile((REPO / "workflow" / "rules" / "common.smk").read_text(), "common.smk", "exec"), namespace)
     return namespace
 
@@ -120,7 +120,7 @@ def test_main_dna_table_plans_only_the_three_subjects(tmp_path):
             path.write_bytes(b"")  # a plan only checks that the inputs exist
     (tmp_path / "SMPLX_NEUTRAL.npz").write_bytes(b"")
     (tmp_path / "dna.yaml").write_text(yaml.safe_dump({**dataset, "body_model": str(tmp_path / "SMPLX_NEUTRAL.npz")}))
-    (tmp_path / "run.yaml").write_text(yaml.safe_dump({"profile": "test", "datasets": {"dna": str(tmp_path / "dna.yaml")}}))
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump({"preset": "test", "datasets": {"dna": str(tmp_path / "dna.yaml")}}))
     done = subprocess.run(["snakemake", "-n", "results/tables/dna.csv", "--snakefile", str(REPO / "Snakefile"),
                            "--directory", str(tmp_path), "--configfile", str(tmp_path / "run.yaml")],
                           capture_output=True, text=True, timeout=300)

@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from pig.config import load_profile, load_section
+from pig.config import load_preset, load_section
 from pig.render import RasterizerConfig, RenderError, render_gaussians
 from pig.render.cpu_compositor import row_spans
 from pig.render.projection import project_splats
@@ -366,8 +366,8 @@ def test_bad_inputs_raise_clear_errors():
         render_gaussians(*gaussians, torch.eye(4)[None], K, 32, 24, [0.0, 0.0, 0.0], backend="gsplat")
 
 
-@pytest.mark.parametrize("profile", ["test", "cpu-demo", "paper"])
-def test_profiles_define_the_rasterizer_section(profile):
-    config = load_section(load_profile(profile), "rasterizer", RasterizerConfig)
+@pytest.mark.parametrize("preset", ["test", "cpu-demo", "paper"])
+def test_presets_define_the_rasterizer_section(preset):
+    config = load_section(load_preset(preset), "rasterizer", RasterizerConfig)
     assert config.backend in ("auto", "cpu", "gsplat")
     assert config.max_pairs >= 100_000

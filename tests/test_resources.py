@@ -1,4 +1,4 @@
-"""Job resources per rule from the compute profile's `resources:` section (pig.resources, workflow/rules/common.smk)."""
+"""Job resources per rule from the compute preset's `resources:` section (pig.resources, workflow/rules/common.smk)."""
 from __future__ import annotations
 
 import multiprocessing
@@ -12,21 +12,22 @@ import yaml
 
 import pig.data.formats  # noqa: F401  (imported by the workflow at DAG time; loaded once here for the forks)
 import pig.data.synthetic  # noqa: F401
-from pig.config import ConfigError, load_profile
+from pig.config import ConfigError, load_preset
 from pig.resources import RuleResources, check_rule_names, rule_resources
 
 REPO = Path(__file__).resolve().parent.parent
-PRESET_RULES = {"preprocess_capture", "fit_avatar", "render_split", "evaluate", "make_tables", "animate"}
+PRESET_RULES = {"preprocess_capture", "fit_avatar", "render_split", "evaluate", "montage_split", "make_tables",
+                "make_table", "animate"}
 
 
-def profile(section) -> dict:
+def preset(section) -> dict:
     return {"_path": "my.yaml", "resources": section}
 
 
 def test_rule_entry_over_default_over_built_in():
     section = {"default": {"mem_mb": 3000, "runtime": 20}, "fit_avatar": {"runtime": 600, "gpu": 1}}
-    assert rule_resources(profile(section), "fit_avatar") == RuleResources(threads=1, mem_mb=3000, runtime=600, gpu=1)
-    assert rule_resources(profile(section), "evaluate") == RuleResources(mem_mb=3000, runtime=20)
+    assert rule_resources(preset(section), "fit_avatar") == RuleResources(threads=1, mem_mb=3000, runtime=600, gpu=1)
+    assert rule_resources(preset(section), "evaluate") == RuleResources(mem_mb=3000, runtime=20)
     assert rule_resources({}, "evaluate") == RuleResources()
 
 
@@ -48,21 +49,21 @@ def test_snakemake_resources_carry_slurm_extra_only_when_set():
 ])
 def test_bad_entries_name_file_rule_and_key(section, message):
     with pytest.raises(ConfigError, match=message):
-        rule_resources(profile(section), "fit_avatar")
+        rule_resources(preset(section), "fit_avatar")
 
 
 def test_unknown_rule_names_are_refused():
-    check_rule_names(profile({"default": {}, "fit_avatar": {}}), PRESET_RULES)
+    check_rule_names(preset({"default": {}, "fit_avatar": {}}), PRESET_RULES)
     with pytest.raises(ConfigError, match=r"my\.yaml: section 'resources': no rule named \['fit'\] takes its resources "
                                           r"from here; expected `default` or some of \['animate', "):
-        check_rule_names(profile({"fit": {"gpu": 1}}), PRESET_RULES)
+        check_rule_names(preset({"fit": {"gpu": 1}}), PRESET_RULES)
 
 
 @pytest.mark.parametrize("name", ["test", "cpu-demo", "paper"])
-def test_shipped_profiles(name):
+def test_shipped_presets(name):
     """Every preset's section loads for every rule; CPU presets ask for no GPU (the Slurm test's node has
     none), the paper preset's GPU stages one GPU each."""
-    preset = load_profile(name)
+    preset = load_preset(name)
     check_rule_names(preset, PRESET_RULES)
     resources = {rule: rule_resources(preset, rule) for rule in PRESET_RULES}
     gpus = {rule for rule, r in resources.items() if r.gpu}
@@ -79,16 +80,16 @@ def _snakemake_child(argv: list[str], log: Path) -> None:
 
 
 def dry_run(tmp_path: Path, resources: dict) -> tuple[int, str]:
-    """(exit code, output) of a dry run of the default target with the test profile plus `resources`, in a forked
+    """(exit code, output) of a dry run of the default target with the test preset plus `resources`, in a forked
     child of this process, which has already imported what the workflow imports at DAG time."""
     work = tmp_path / "work"
     work.mkdir()
     (work / "config").symlink_to(REPO / "config")
-    preset = yaml.safe_load((REPO / "config" / "profiles" / "test.yaml").read_text())
+    preset = yaml.safe_load((REPO / "config" / "presets" / "test.yaml").read_text())
     preset["resources"] = resources
     (tmp_path / "preset.yaml").write_text(yaml.safe_dump(preset))
     argv = ["--dry-run", "--cores", "4", "--snakefile", str(REPO / "Snakefile"), "--directory", str(work),
-            "--config", f"profile={tmp_path / 'preset.yaml'}"]
+            "--config", f"preset={tmp_path / 'preset.yaml'}"]
     log = tmp_path / "snakemake.out"
     child = multiprocessing.get_context("fork").Process(target=_snakemake_child, args=(argv, log))
     child.start()
@@ -105,7 +106,7 @@ def job_settings(output: str, rule: str) -> dict[str, str]:
     return {"threads": lines.get("threads", "1"), **settings}
 
 
-def test_workflow_jobs_take_the_profile_resources(tmp_path):
+def test_workflow_jobs_take_the_preset_resources(tmp_path):
     code, output = dry_run(tmp_path, {"default": {"mem_mb": 900, "runtime": 5},
                                       "fit_avatar": {"threads": 3, "mem_mb": 1234, "runtime": 7, "gpu": 1,
                                                      "slurm_extra": "--gres=gpu:a100:1"}})

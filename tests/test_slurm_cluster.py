@@ -1,5 +1,6 @@
-"""The `test` profile's whole workflow on a real one-node Slurm cluster on 127.0.0.1, through
-`--workflow-profile workflow/profiles/slurm` (snakemake-executor-plugin-slurm).
+"""The `test` preset's whole workflow on a real one-node Slurm cluster on 127.0.0.1, through
+`--workflow-profile slurm` (workflow/profiles/slurm, found as profiles/slurm beside the Snakefile; the README's
+command) and snakemake-executor-plugin-slurm.
 
 The cluster is Debian's slurm-wlm and munge, started here as root: munged, slurmctld and slurmd in a temporary
 folder, a slurm.conf at Slurm's default path (the executor strips SLURM_CONF from the job steps it starts). Job
@@ -22,16 +23,16 @@ from pathlib import Path
 
 import pytest
 
-from pig.config import load_profile
+from pig.config import load_preset
 from pig.resources import rule_resources
 
 REPO = Path(__file__).resolve().parent.parent
 SLURM_CONF = Path("/etc/slurm/slurm.conf")  # Debian's compiled-in default
 MARK = "# written by pig's tests/test_slurm_cluster.py"
 TOOLS = ("munged", "mungekey", "slurmctld", "slurmd", "sinfo", "sbatch", "squeue", "sacct", "scancel")
-# Jobs of the default target with the test profile (2 LODs, 2 held-out splits, one variant).
+# Jobs of the default target with the test preset (2 LODs, 2 held-out splits, one variant).
 JOBS = {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": 1, "render_split": 2, "evaluate": 4,
-        "make_tables": 1}
+        "montage_split": 2, "make_tables": 1}
 
 
 def skip_reason() -> str | None:
@@ -153,8 +154,8 @@ def test_workflow_runs_on_slurm(cluster, tmp_path):
     (work / "config").symlink_to(REPO / "config")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     command = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"),
-               "--workflow-profile", str(REPO / "workflow" / "profiles" / "slurm"),
-               "--config", "profile=test", "dataset=synthetic", "variants=[pig]",
+               "--workflow-profile", "slurm",
+               "--config", "preset=test", "dataset=synthetic", "variants=[pig]",
                # This cluster's particulars: no accounts, no slurmdbd; quick first status check.
                "--slurm-no-account", "--slurm-status-command", "squeue",
                "--slurm-init-seconds-before-status-checks", "1", "--slurm-keep-successful-logs"]
@@ -178,8 +179,8 @@ def test_workflow_runs_on_slurm(cluster, tmp_path):
     assert ours <= set(records), (ours, records)
     assert {records[job]["State"] for job in ours} == {"COMPLETED"}
     assert len({records[job]["JobName"] for job in ours}) == 1  # the executor names jobs by its run id
-    # ... asking for what the test profile's `resources:` section gives each rule.
-    preset = load_profile("test")
+    # ... asking for what the test preset's `resources:` section gives each rule.
+    preset = load_preset("test")
     for rule, ids in by_rule.items():
         if rule == "generate_capture":  # sized from the `synthetic` section
             continue

@@ -21,7 +21,7 @@ from pig.avatar.config import AvatarConfig
 from pig.avatar.decoders import AnchorDecoder
 from pig.avatar.training import FitConfig, LossTerms, iteration_loss, lr_factor
 from pig.body.params import SmplxParams
-from pig.config import ConfigError, load_profile, load_section
+from pig.config import ConfigError, load_preset, load_section
 from pig.field.knn_graph import knn_laplacian
 from pig.field.knn_solve import CGNotConverged, CGSystem
 from pig.field.latent_grid import FieldConfig
@@ -393,14 +393,14 @@ def test_lr_factor_closed_form():
             FitConfig(**fields)
 
 
-def _profile(tmp_path, name: str, **fit) -> str:
-    """The test profile with a small avatar and a quiet loop (no periodic checkpoint unless asked)."""
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["avatar"].update(num_anchors=300)
-    profile["fit"].update(dict(eval_frames=1, checkpoint_minutes=1e6, prefetch=1, loader_workers=1), **fit)
+def _preset(tmp_path, name: str, **fit) -> str:
+    """The test preset with a small avatar and a quiet loop (no periodic checkpoint unless asked)."""
+    preset = load_preset("test")
+    preset.pop("_path")
+    preset["avatar"].update(num_anchors=300)
+    preset["fit"].update(dict(eval_frames=1, checkpoint_minutes=1e6, prefetch=1, loader_workers=1), **fit)
     path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(profile))
+    path.write_text(yaml.safe_dump(preset))
     return str(path)
 
 
@@ -417,8 +417,8 @@ def test_log_every_rows_are_means_of_the_per_iteration_losses(small_capture, tmp
     the window's float32 sum of <= 3 terms rounds by ~1e-7 relative (bound 1e-6; measured 7.7e-8)."""
     from pig.avatar.training import fit
 
-    fit(small_capture, tmp_path / "every1", _profile(tmp_path, "every1", iterations=10, eval_every=5, log_every=1))
-    fit(small_capture, tmp_path / "every3", _profile(tmp_path, "every3", iterations=10, eval_every=5, log_every=3))
+    fit(small_capture, tmp_path / "every1", _preset(tmp_path, "every1", iterations=10, eval_every=5, log_every=1))
+    fit(small_capture, tmp_path / "every3", _preset(tmp_path, "every3", iterations=10, eval_every=5, log_every=3))
     every1, every3 = _log(tmp_path / "every1"), _log(tmp_path / "every3")
     assert [r["iteration"] for r in every1] == list(range(11))
     assert [r["iteration"] for r in every3] == [0, 3, 5, 6, 9, 10]
@@ -440,14 +440,14 @@ def test_log_every_rows_are_means_of_the_per_iteration_losses(small_capture, tmp
 @pytest.mark.slow
 def test_lr_schedule_survives_a_resume(small_capture, tmp_path):
     """A fit with warm-up and decay killed after iteration 4 and resumed ends with the uninterrupted fit's
-    weights, bit for bit: the resumed fit scales the profile's base rates, not the decayed rates its
+    weights, bit for bit: the resumed fit scales the preset's base rates, not the decayed rates its
     checkpoint's optimisers hold."""
     from pig.avatar.training import fit
 
     iterations, warmup, final = 8, 3, 0.05
-    profile = _profile(tmp_path, "schedule", iterations=iterations, eval_every=100, lr_warmup=warmup, lr_final=final,
+    preset = _preset(tmp_path, "schedule", iterations=iterations, eval_every=100, lr_warmup=warmup, lr_final=final,
                        checkpoint_minutes=0.0)
-    reference = fit(small_capture, tmp_path / "full", profile)
+    reference = fit(small_capture, tmp_path / "full", preset)
 
     class Killed(Exception):
         pass
@@ -457,15 +457,15 @@ def test_lr_schedule_survives_a_resume(small_capture, tmp_path):
             raise Killed
 
     with pytest.raises(Killed):
-        fit(small_capture, tmp_path / "resumed", profile, on_iteration=kill_at_4)
+        fit(small_capture, tmp_path / "resumed", preset, on_iteration=kill_at_4)
     state = torch.load(tmp_path / "resumed" / "checkpoint.pt", weights_only=True)
     assert state["iteration"] == 4
     # The rates of the 4th iteration (index 3): the base rates times the schedule's factor.
-    fit_cfg = load_section(load_profile(profile), "fit", FitConfig)
+    fit_cfg = load_section(load_preset(preset), "fit", FitConfig)
     expected = lr_factor(3 / iterations, 3, warmup, final)
     decoders = next(g for g in state["optimizers"][1]["param_groups"] if g["name"] == "decoders")
     assert math.isclose(decoders["lr"], fit_cfg.lr_decoders * expected, rel_tol=1e-12) and expected < 0.8
-    resumed = fit(small_capture, tmp_path / "resumed", profile)
+    resumed = fit(small_capture, tmp_path / "resumed", preset)
     a, b = load_avatar(reference).state_dict(), load_avatar(resumed).state_dict()
     assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
 
@@ -477,14 +477,14 @@ def test_time_budget_stops_the_fit_with_an_evaluated_last_row(small_capture, tmp
     iteration's, with the mean loss of its window and a held-out PSNR, and avatar.pt records it."""
     from pig.avatar.training import fit
 
-    profile = _profile(tmp_path, "budget", iterations=1000, eval_every=1000, log_every=4, time_budget_s=0.5)
+    preset = _preset(tmp_path, "budget", iterations=1000, eval_every=1000, log_every=4, time_budget_s=0.5)
     done = []
 
     def slow(iteration):
         done.append(iteration)
         time.sleep(0.3)
 
-    avatar = fit(small_capture, tmp_path / "budget", profile, on_iteration=slow)
+    avatar = fit(small_capture, tmp_path / "budget", preset, on_iteration=slow)
     assert 1 <= len(done) <= 2 and done == list(range(1, len(done) + 1))
     rows = _log(tmp_path / "budget")
     assert [r["iteration"] for r in rows] == [0, len(done)]

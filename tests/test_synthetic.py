@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from pig.body.model import SMPLX_JOINT_NAMES, BodyModel
 from pig.body.params import from_thuman
-from pig.config import ConfigError, load_profile, load_section
+from pig.config import ConfigError, load_preset, load_section
 from pig.data import synthetic
 from pig.data.formats import open_capture
 from pig.data.synthetic import SyntheticConfig, SyntheticError, build_scene, generate_capture
@@ -29,7 +29,7 @@ TOP_LEVEL = {"images", "masks", "calibration.json", "smpl_params.npz", "body_mod
 
 @pytest.fixture(scope="module")
 def cfg():
-    return load_section(load_profile("test"), "synthetic", SyntheticConfig)
+    return load_section(load_preset("test"), "synthetic", SyntheticConfig)
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +114,7 @@ def test_motion_bends_elbows_knees_and_spine(scene):
 
 def test_deterministic_per_seed(capture, tmp_path, cfg, scene):
     again = tmp_path / "again"
-    assert generate.main(["--output", str(again), "--profile", "test", "--quiet"]) == 0
+    assert generate.main(["--output", str(again), "--preset", "test", "--quiet"]) == 0
     files = sorted(p.relative_to(capture) for p in capture.rglob("*") if p.is_file())
     assert files == sorted(p.relative_to(again) for p in again.rglob("*") if p.is_file())
     for rel in files:
@@ -142,7 +142,7 @@ def test_existing_output_is_refused_unless_it_is_a_generated_capture(tmp_path, c
     foreign = tmp_path / "subject00"
     foreign.mkdir()
     (foreign / "notes.txt").write_text("mine")
-    assert run_cli(generate.main, ["--output", str(foreign), "--profile", "test", "--quiet"]) == 1
+    assert run_cli(generate.main, ["--output", str(foreign), "--preset", "test", "--quiet"]) == 1
     err = capsys.readouterr().err
     assert f"generate: error: {foreign}: holds files the generate stage did not write (notes.txt); pass --overwrite" in err
     assert [p.name for p in foreign.iterdir()] == ["notes.txt"] and [p.name for p in tmp_path.iterdir()] == ["subject00"]
@@ -162,7 +162,7 @@ def test_bad_settings_are_named():
     with pytest.raises(SyntheticError, match="synthetic.cameras must be at least 1"):
         SyntheticConfig(cameras=0)
     with pytest.raises(ConfigError, match=r"test\.yaml: section 'synthetic': unknown key\(s\) \['camras'\]"):
-        load_section(load_profile("test"), "synthetic", SyntheticConfig, {"camras": 3})
+        load_section(load_preset("test"), "synthetic", SyntheticConfig, {"camras": 3})
     with pytest.raises(SyntheticError, match="nowhere.npz does not exist"):
         synthetic.body_model_arrays(SyntheticConfig(body_model="/nowhere.npz"))
 

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from pig.avatar.variants import table_variants, variant_kind
-from pig.config import ConfigError, load_profile
+from pig.config import ConfigError, load_preset
 from pig.stages import tables
 from pig.stages._cli import run_cli
 from pig.stages.tables import BLANK_ROW, REGION_KEYS, SPLITS, make_table, make_tables, noise_sigmas
@@ -60,18 +60,18 @@ def _expected(paths: list[Path], variant: str, split: str, key: str) -> float:
 
 
 def test_each_table_takes_its_kind_of_variant_from_any_subset():
-    profile = load_profile("test")
-    assert [variant_kind(profile, v) for v in ("pig", "template_bound", "local_offsets", "noise_0.2", "lod_1of1")] == [
+    preset = load_preset("test")
+    assert [variant_kind(preset, v) for v in ("pig", "template_bound", "local_offsets", "noise_0.2", "lod_1of1")] == [
         "structural", "structural", "structural", "noise", "lod"]
     names = ["noise_0.25", "pig", "template_bound", "lod_1of1", "no_precond"]
-    assert table_variants(profile, names, "main") == names == table_variants(profile, names, "regions")
-    assert table_variants(profile, names, "ablation") == ["pig", "template_bound", "no_precond"]
-    assert table_variants(profile, names, "noise") == ["noise_0.25", "pig"]
-    assert table_variants(profile, ["template_bound"], "noise") == []
+    assert table_variants(preset, names, "main") == names == table_variants(preset, names, "regions")
+    assert table_variants(preset, names, "ablation") == ["pig", "template_bound", "no_precond"]
+    assert table_variants(preset, names, "noise") == ["noise_0.25", "pig"]
+    assert table_variants(preset, ["template_bound"], "noise") == []
     with pytest.raises(ConfigError, match=r"unknown variant 'nope'"):
-        table_variants(profile, ["pig", "nope"], "ablation")
+        table_variants(preset, ["pig", "nope"], "ablation")
     with pytest.raises(ConfigError, match=r"unknown table 'lod'; expected main, ablation, noise or regions"):
-        table_variants(profile, names, "lod")
+        table_variants(preset, names, "lod")
 
 
 # ---- the tables' contents ----
@@ -142,15 +142,15 @@ def test_regions_table_per_variant_and_split(tmp_path):
         make_table("regions", "synthetic", paths, ["pig", "local_offsets"], out)
 
 
-def test_noise_table_takes_sigma_from_the_profile_and_sorts_by_it(tmp_path):
+def test_noise_table_takes_sigma_from_the_preset_and_sorts_by_it(tmp_path):
     paths = _summaries(tmp_path, {"noise_0.25": 1, "pig": 1, "noise_0.1": 1}, regions=False)
     variants = ["noise_0.25", "pig", "noise_0.1"]
-    profile = load_profile("test")
+    preset = load_preset("test")
     sigmas = noise_sigmas("test", variants)
-    assert sigmas == {v: profile["variants"].get(v, {}).get("fit", {}).get("sigma_body", 0.0) for v in variants}
+    assert sigmas == {v: preset["variants"].get(v, {}).get("fit", {}).get("sigma_body", 0.0) for v in variants}
     out = tmp_path / "tables"
     assert run_cli(tables.main, ["--table", "noise", "--dataset", "synthetic", "--summaries", *map(str, paths),
-                                 "--variants", *variants, "--profile", "test", "--output", str(out)]) == 0
+                                 "--variants", *variants, "--preset", "test", "--output", str(out)]) == 0
     table = pd.read_csv(out / "synthetic_noise.csv")
     assert list(table["variant"]) == sorted(variants, key=sigmas.get) and BLANK_ROW not in set(table["variant"])
     assert list(table.columns[:3]) == ["variant", "sigma_body", "sigma_body_deg"]
@@ -222,7 +222,7 @@ def _synthetic_workdir(tmp_path: Path) -> Path:
     work = tmp_path / "work dir"
     work.mkdir()
     shutil.copytree(REPO / "config", work / "config")
-    shutil.copyfile(REPO / "config" / "profiles" / "test.yaml", work / "config" / "test profile.yaml")
+    shutil.copyfile(REPO / "config" / "presets" / "test.yaml", work / "config" / "test preset.yaml")
     return work
 
 
@@ -245,8 +245,8 @@ def snakemake_run():
 
 def test_table_targets_schedule_just_the_variants_of_their_table(tmp_path, snakemake_run):
     work = _synthetic_workdir(tmp_path)
-    settings = ["--config", "profile=config/test profile.yaml", "variants=[pig,template_bound,noise_0.1,lod_1of1]"]
-    # test profile: 2 levels, lod_1of1 1; 2 splits; one subject.
+    settings = ["--config", "preset=config/test preset.yaml", "variants=[pig,template_bound,noise_0.1,lod_1of1]"]
+    # test preset: 2 levels, lod_1of1 1; 2 splits; one subject.
     expected = {"ablation": ["pig", "template_bound"], "noise": ["pig", "noise_0.1"],
                 "regions": ["pig", "template_bound", "noise_0.1", "lod_1of1"]}
     for table, variants in expected.items():
@@ -256,7 +256,7 @@ def test_table_targets_schedule_just_the_variants_of_their_table(tmp_path, snake
                                   "render_split": 2 * len(variants), "evaluate": 2 * levels, "make_table": 1}
         command = next(line for line in output.splitlines() if "pig.stages.tables" in line)
         assert f"--table {table} " in command and f"--variants {' '.join(variants)} " in command
-        assert "--profile 'config/test profile.yaml'" in command
+        assert "--preset 'config/test preset.yaml'" in command
     output = snakemake_run(work, "results/tables/synthetic.csv", "--dry-run", "--quiet", "rules", *settings)
     assert _rules(output)["make_tables"] == 1 and _rules(output)["fit_avatar"] == 4
 
@@ -284,7 +284,7 @@ def _failing_snakemake(workdir: Path, *args: str) -> str:
 def test_table_targets_without_runs_are_refused_at_once(tmp_path, target, message):
     work = _synthetic_workdir(tmp_path)
     output = _failing_snakemake(work, f"results/tables/{target}", "--dry-run", "--config",
-                                "profile=config/test profile.yaml", "variants=[template_bound]")
+                                "preset=config/test preset.yaml", "variants=[template_bound]")
     assert message in output, output[-3000:]
 
 
@@ -294,7 +294,7 @@ def test_regions_target_builds_the_table_from_the_evaluate_summaries(tmp_path, s
     paths = [_summary(work / "results", "subject00", variant, split, lod)
              for variant in ("pig", "template_bound") for split in SPLITS for lod in range(2)]
     snakemake_run(work, "results/tables/synthetic_regions.csv", "--cores", "1", "--allowed-rules", "make_table",
-                  "--config", "profile=config/test profile.yaml", "variants=[pig,template_bound]")
+                  "--config", "preset=config/test preset.yaml", "variants=[pig,template_bound]")
     table = pd.read_csv(work / "results" / "tables" / "synthetic_regions.csv")
     assert list(table["variant"]) == ["pig", "pig", "template_bound", "template_bound"]
     for row in table.itertuples(index=False):

@@ -1,6 +1,6 @@
 """Method variants of issue 13: the template-bound baseline, offsets in the anchor's frame, the single-level model.
 
-Each is a row of every profile's `variants:` section, builds from its overrides and trains for a few iterations.
+Each is a row of every preset's `variants:` section, builds from its overrides and trains for a few iterations.
 """
 import math
 from dataclasses import asdict
@@ -19,7 +19,7 @@ from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from pig.body.transport import barycentric_points
-from pig.config import ConfigError, from_dict, load_profile, load_section
+from pig.config import ConfigError, from_dict, load_preset, load_section
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 
@@ -66,12 +66,12 @@ def _surface_points(model, steps: torch.Tensor, lod: int, poses=None) -> np.ndar
     return np.einsum("nc,kncx->knx", model.bary[:n].double().numpy(), corners)
 
 
-# ---- the profiles ----
+# ---- the presets ----
 
 
-@pytest.mark.parametrize("profile", ["paper", "cpu-demo", "test"])
-def test_every_profile_defines_the_new_variants_as_valid_overrides(profile):
-    data = load_profile(profile)
+@pytest.mark.parametrize("preset", ["paper", "cpu-demo", "test"])
+def test_every_preset_defines_the_new_variants_as_valid_overrides(preset):
+    data = load_preset(preset)
     for name in NEW_VARIANTS:
         cfg = load_section(data, "avatar", AvatarConfig, variant_overrides(data, name).get("avatar"))
         base = load_section(data, "avatar", AvatarConfig)
@@ -187,23 +187,23 @@ def test_local_offsets_are_the_transport_rotation_times_the_decoded_offset(stand
 
 
 @pytest.fixture(scope="module")
-def short_profile(tmp_path_factory):
-    profile = load_profile("test")
-    profile.pop("_path")
-    profile["fit"].update(iterations=2, eval_every=2, eval_frames=1, checkpoint_minutes=0.0)
-    path = tmp_path_factory.mktemp("variants") / "profile.yaml"
-    path.write_text(yaml.safe_dump(profile))
+def short_preset(tmp_path_factory):
+    preset = load_preset("test")
+    preset.pop("_path")
+    preset["fit"].update(iterations=2, eval_every=2, eval_frames=1, checkpoint_minutes=0.0)
+    path = tmp_path_factory.mktemp("variants") / "preset.yaml"
+    path.write_text(yaml.safe_dump(preset))
     return str(path)
 
 
 @pytest.mark.parametrize("variant", NEW_VARIANTS)
-def test_new_variant_fits_a_few_iterations(small_capture, short_profile, tmp_path, variant):
+def test_new_variant_fits_a_few_iterations(small_capture, short_preset, tmp_path, variant):
     from pig.avatar.training import fit
 
-    model = load_avatar(fit(small_capture, tmp_path / variant, short_profile, variant=variant))
+    model = load_avatar(fit(small_capture, tmp_path / variant, short_preset, variant=variant))
     log = pd.read_csv(tmp_path / variant / "train_log.csv")
     assert log["iteration"].iloc[-1] == 2 and np.isfinite(log["heldout_psnr"].dropna()).all()
-    anchors = load_section(load_profile(short_profile), "avatar", AvatarConfig).num_anchors
+    anchors = load_section(load_preset(short_preset), "avatar", AvatarConfig).num_anchors
     if variant == "lod_1of1":
         assert model.level_sizes == [anchors]
     else:

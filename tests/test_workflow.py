@@ -1,10 +1,11 @@
 """The Snakemake workflow's rerun rules and shell quoting, through real `snakemake` runs.
 
 Most tests work on a fake THuman4 subject whose outputs all exist and are recorded as up to date
-(`--touch`), in a folder whose path, raw data, profile, dataset YAML and subject name hold spaces, and
-assert which jobs a dry run schedules after one change: a profile value, the dataset split, a raw image
+(`--touch`), in a folder whose path, raw data, preset, dataset YAML and subject name hold spaces, and
+assert which jobs a dry run schedules after one change: a preset value, the dataset split, a raw image
 or mask, `avatar.levels`. Snakemake runs in a forked child of the test process, which has already
-imported what the workflow imports at DAG time (torch among them): a dry run takes ~2 s instead of ~8 s.
+imported what the workflow imports at DAG time: a dry run takes ~2 s instead of ~3 s. Building the DAG imports
+no torch (a test checks it in a fresh interpreter).
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import multiprocessing
 import os
 import shlex
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -26,9 +28,9 @@ from pig.stages.evaluate import EvaluateConfig, evaluate_split
 REPO = Path(__file__).resolve().parent.parent
 SUBJECT = "subject 00"
 TARGET = "results/tables/thuman4.csv"
-PROFILE = "config/test profile.yaml"
+PRESET = "config/test preset.yaml"
 DATASET = "config/data sets/thuman4.yaml"
-# Jobs of TARGET (2 LODs in the test profile, 2 held-out splits) from each stage on.
+# Jobs of TARGET (2 LODs in the test preset, 2 held-out splits) from each stage on.
 FROM_PREPROCESS = {"preprocess_capture": 1, "fit_avatar": 1, "render_split": 2, "evaluate": 4, "make_tables": 1}
 FROM_FIT = {rule: n for rule, n in FROM_PREPROCESS.items() if rule != "preprocess_capture"}
 FROM_RENDER = {rule: n for rule, n in FROM_FIT.items() if rule != "fit_avatar"}
@@ -44,8 +46,8 @@ def _snakemake_child(argv: list[str], log: Path) -> None:
     snakemake.cli.main(argv)
 
 
-def snakemake_run(workdir: Path, *args: str) -> str:
-    """Output of `snakemake ARGS` on the workflow in `workdir`; fails the test when Snakemake fails."""
+def snakemake_exit(workdir: Path, *args: str) -> tuple[int, str]:
+    """(exit code, output) of `snakemake ARGS` on the workflow in `workdir`."""
     log = workdir.parent / "snakemake.out"
     argv = [*args, "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir)]
     child = multiprocessing.get_context("fork").Process(target=_snakemake_child, args=(argv, log))
@@ -54,8 +56,13 @@ def snakemake_run(workdir: Path, *args: str) -> str:
     if child.is_alive():
         child.kill()
         child.join()
-    output = log.read_text()
-    assert child.exitcode == 0, f"snakemake {' '.join(args)} exited {child.exitcode}:\n{output[-5000:]}"
+    return child.exitcode, log.read_text()
+
+
+def snakemake_run(workdir: Path, *args: str) -> str:
+    """Output of `snakemake ARGS` on the workflow in `workdir`; fails the test when Snakemake fails."""
+    code, output = snakemake_exit(workdir, *args)
+    assert code == 0, f"snakemake {' '.join(args)} exited {code}:\n{output[-5000:]}"
     return output
 
 
@@ -95,15 +102,15 @@ def _fake_thuman4_subject(root: Path) -> None:
 
 
 def _workflow_config(work: Path, dataset: str) -> None:
-    """config/ of the repository, with the test profile and the thuman4 dataset YAML at paths with spaces."""
+    """config/ of the repository, with the test preset and the thuman4 dataset YAML at paths with spaces."""
     shutil.copytree(REPO / "config", work / "config")
-    shutil.copyfile(REPO / "config" / "profiles" / "test.yaml", work / PROFILE)
+    shutil.copyfile(REPO / "config" / "presets" / "test.yaml", work / PRESET)
     (work / DATASET).parent.mkdir()
     thuman4 = yaml.safe_load((REPO / "config" / "datasets" / "thuman4.yaml").read_text())
     thuman4.update(root="raw data", body_model="raw data/SMPLX NEUTRAL.npz", subjects=[SUBJECT])
     (work / DATASET).write_text(yaml.safe_dump(thuman4))
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    config.update(profile=PROFILE, dataset=dataset)
+    config.update(preset=PRESET, dataset=dataset)
     config["datasets"]["thuman4"] = DATASET
     (work / "config" / "config.yaml").write_text(yaml.safe_dump(config))
 
@@ -140,6 +147,9 @@ def workflow(recorded, tmp_path) -> Path:
 
 def test_shell_commands_quote_every_path(recorded):
     output = snakemake_run(recorded, TARGET, "--dry-run", "--printshellcmds", "--forceall")
+    # Snakemake finds workflow/profiles/default as profiles/default (a link) beside the Snakefile.
+    used = output.split("Using workflow specific profile ", 1)[1].split(" for setting", 1)[0]
+    assert Path(used).resolve() == REPO / "workflow" / "profiles" / "default"
     commands = [line.split("Shell command: ", 1)[1] for line in output.splitlines() if "Shell command: " in line]
     assert len(commands) == sum(FROM_PREPROCESS.values())
     for command in commands:
@@ -148,7 +158,7 @@ def test_shell_commands_quote_every_path(recorded):
         paths = [w for w in words if "/" in w]
         assert paths and all(" " in p or p.startswith("results/tables") for p in paths), command
         if "pig.stages.tables" not in command:
-            assert words[words.index("--profile") + 1] == PROFILE, command
+            assert words[words.index("--preset") + 1] == PRESET, command
     preprocess = shlex.split(next(c for c in commands if "pig.stages.preprocess" in c))
     values = dict(zip(preprocess, preprocess[1:]))
     assert values["--input"] == f"raw data/{SUBJECT}"
@@ -158,22 +168,22 @@ def test_shell_commands_quote_every_path(recorded):
     assert values[">"] == f"results/thuman4/{SUBJECT}/logs/preprocess.log"
 
 
-def test_profile_change_reruns_the_stages_that_read_it(workflow):
-    profile = workflow / PROFILE
-    original = edit_yaml(profile, lambda p: p["fit"].update(iterations=41))
+def test_preset_change_reruns_the_stages_that_read_it(workflow):
+    preset = workflow / PRESET
+    original = edit_yaml(preset, lambda p: p["fit"].update(iterations=41))
     assert scheduled(workflow) == FROM_FIT
-    profile.write_text(original)
-    edit_yaml(profile, lambda p: p["evaluate"].update(batch_size=3))  # read by render and evaluate
+    preset.write_text(original)
+    edit_yaml(preset, lambda p: p["evaluate"].update(batch_size=3))  # read by render and evaluate
     assert scheduled(workflow) == FROM_RENDER
-    profile.write_text(original)
+    preset.write_text(original)
     # Sections no stage of TARGET reads: another variant's overrides, the synthetic generator.
-    edit_yaml(profile, lambda p: (p["variants"]["no_offsets"].update(avatar={"offsets": True}),
+    edit_yaml(preset, lambda p: (p["variants"]["no_offsets"].update(avatar={"offsets": True}),
                                   p["synthetic"].update(frames=9)))
     assert scheduled(workflow) == {}
 
 
 def test_avatar_levels_change_rebuilds_fit_render_evaluate_tables(workflow):
-    edit_yaml(workflow / PROFILE, lambda p: p["avatar"].update(levels=3))
+    edit_yaml(workflow / PRESET, lambda p: p["avatar"].update(levels=3))
     assert scheduled(workflow) == {**FROM_FIT, "evaluate": 6}
 
 
@@ -203,11 +213,11 @@ def test_raw_mask_replaced_by_an_older_file_reruns_preprocess(workflow):
 
 @pytest.mark.slow
 def test_generated_capture_runs_in_a_folder_with_spaces_and_reruns_only_on_change(tmp_path):
-    """generate + preprocess for real (test profile) in a path with spaces; then a changed generated image
+    """generate + preprocess for real (test preset) in a path with spaces; then a changed generated image
     reruns preprocess alone, and a regenerated capture leaves nothing stale behind."""
     work = tmp_path / "work dir"
     _workflow_config(work, "synthetic")
-    edit_yaml(work / PROFILE, lambda p: p["synthetic"].update(cameras=4, frames=4, width=48, height=48))
+    edit_yaml(work / PRESET, lambda p: p["synthetic"].update(cameras=4, frames=4, width=48, height=48))
     target = "results/synthetic/subject00/capture/report.json"
 
     def run() -> None:
@@ -224,7 +234,7 @@ def test_generated_capture_runs_in_a_folder_with_spaces_and_reruns_only_on_chang
     stat = image.stat()
     os.utime(image, ns=(stat.st_atime_ns, stat.st_mtime_ns - 3600 * 10**9))
     assert scheduled(work, target) == {"preprocess_capture": 1}
-    edit_yaml(work / PROFILE, lambda p: p["synthetic"].update(seed=1))
+    edit_yaml(work / PRESET, lambda p: p["synthetic"].update(seed=1))
     assert scheduled(work, target) == {"generate_capture": 1, "preprocess_capture": 1}
     run()
     # preprocess's manifest of the raw files was taken after generate rewrote them.
@@ -238,6 +248,36 @@ def test_evaluate_names_changed_levels_as_the_likely_cause(small_capture, tmp_pa
     with pytest.raises(FileNotFoundError, match=r"LOD\(s\) \[2\] were not rendered; found lod\[0, 1\].*avatar\.levels"):
         evaluate_split(small_capture, renders, "novel_view", tmp_path / "metrics", EvaluateConfig(device="cpu"), [2])
     assert not (tmp_path / "metrics").exists()
+
+
+def test_old_config_key_profile_names_its_new_name(recorded):
+    code, output = snakemake_exit(recorded, TARGET, "--dry-run", "--config", "profile=test")
+    assert code == 1
+    assert ("config key `profile` is now `preset` (compute presets are config/presets/*.yaml, apart from Snakemake's "
+            "profiles): use --config preset=test or `preset:` in your config file") in output
+
+
+# Runs Snakemake's command line and reports whether anything imported torch meanwhile.
+DAG_PROBE = """
+import sys
+import snakemake.cli
+try:
+    snakemake.cli.main(sys.argv[1:])
+except SystemExit as done:
+    print("exit", done.code, "torch", "torch" in sys.modules)
+"""
+
+
+def test_dag_building_imports_no_torch(recorded):
+    """A dry run of the default target (the THuman4 reader's file checks included) and of the synthetic capture
+    (the generator's settings) in a fresh interpreter: torch costs ~3 s per `snakemake` start, jobs import it."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    for target in ("all", "results/synthetic/subject00/capture/report.json"):
+        done = subprocess.run([sys.executable, "-c", DAG_PROBE, target, "--dry-run", "--forceall", "--snakefile",
+                               str(REPO / "Snakefile"), "--directory", str(recorded)],
+                              capture_output=True, text=True, timeout=120, env=env)
+        assert done.stdout.splitlines()[-1] == "exit 0 torch False", done.stdout[-3000:] + done.stderr[-3000:]
+        assert "rule preprocess_capture:" in done.stdout
 
 
 def test_animate_examples_render_a_turntable_and_the_shipped_demo_motion(recorded):

@@ -1,7 +1,7 @@
 """Avatar checkpoints: the model spec + weights, and for resuming the optimiser, RNG and log state.
 
 Only tensors and plain Python values are stored, so `torch.load(weights_only=True)` reads them and loading
-never runs code. A resume is refused unless the capture, the profile sections the fit uses, the variant and
+never runs code. A resume is refused unless the capture, the preset sections the fit uses, the variant and
 the LPIPS term's state match. Written atomically (temporary name, then rename); `load_avatar` is the render stage's entry, and
 `loss_terms` reads the record of which loss terms of Eq. 15 the fit had (pig.avatar.losses.lpips_term).
 """
@@ -27,7 +27,7 @@ TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteratio
 # memory bands, replaying the same CG kernels as a CUDA graph.
 FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers", "log_every"},
                  "rasterizer": {"max_pairs"}, "precond": {"cg_graphs"}}
-SPEC_SECTIONS = ("avatar", "field", "precond")  # profile sections recorded in the spec
+SPEC_SECTIONS = ("avatar", "field", "precond")  # preset sections recorded in the spec
 
 
 class CheckpointError(ValueError):
@@ -37,7 +37,7 @@ class CheckpointError(ValueError):
 def save_checkpoint(path: Path, model, spec: dict, optimizers: list, generator: torch.Generator, iteration: int,
                     wall_s: float, log_rows: list[dict], settings: dict[str, dict], loss_terms: dict[str, dict]) -> None:
     """Write everything a resume needs; `spec` (see `build_avatar`) holds the capture's fingerprint under
-    "capture", `settings` the other profile sections the fit uses ({"fit": {...}, "rasterizer": {...}}), and
+    "capture", `settings` the other preset sections the fit uses ({"fit": {...}, "rasterizer": {...}}), and
     `loss_terms` the records of the fit's loss terms ({"lpips": a record of `lpips_term`})."""
     state = _plain({
         "version": FORMAT_VERSION, "spec": _stored_spec(spec), "model": _weights(model),
@@ -167,7 +167,7 @@ def _loss_terms(state: dict, path: Path) -> dict[str, dict]:
 
 
 def _section_defaults() -> dict[str, dict]:
-    """Default values of the recorded profile sections' keys."""
+    """Default values of the recorded preset sections' keys."""
     from pig.avatar.config import AvatarConfig
     from pig.avatar.training import FitConfig
     from pig.field.latent_grid import FieldConfig
@@ -182,7 +182,7 @@ def _section_defaults() -> dict[str, dict]:
 def _mismatch(state: dict, spec: dict, settings: dict[str, dict], terms: dict[str, dict],
               old_terms: dict[str, dict]) -> list[str]:
     """What differs between the fit a checkpoint's state belongs to and the fit of `spec`, `settings` and loss
-    `terms`: the capture's parts, profile sections (with their keys), the variant and the LPIPS term's state
+    `terms`: the capture's parts, preset sections (with their keys), the variant and the LPIPS term's state
     (its weight files may have appeared or gone since); empty when it may resume."""
     differs = []
     old_capture, new_capture = state["spec"].get("capture", {}), spec["capture"]
@@ -199,7 +199,7 @@ def _mismatch(state: dict, spec: dict, settings: dict[str, dict], terms: dict[st
                       if key not in FREE_SETTINGS.get(name, ())
                       and old.get(key, default.get(key)) != new.get(key, default.get(key)))
         if keys:
-            differs.append(f"profile section '{name}' differs in {', '.join(keys)}")
+            differs.append(f"preset section '{name}' differs in {', '.join(keys)}")
     if state["spec"].get("variant") != spec["variant"]:
         differs.append(f"the variant differs ({state['spec'].get('variant')!r}, now {spec['variant']!r})")
     if old_terms["lpips"]["state"] != terms["lpips"]["state"]:
@@ -209,7 +209,7 @@ def _mismatch(state: dict, spec: dict, settings: dict[str, dict], terms: dict[st
 
 def load_training_state(path: Path, model, optimizers: list, generator: torch.Generator, spec: dict,
                         settings: dict[str, dict], loss_terms: dict[str, dict]) -> tuple[int, float, list[dict]]:
-    """Restore weights, optimisers and RNG from a checkpoint of the same fit (capture, profile sections,
+    """Restore weights, optimisers and RNG from a checkpoint of the same fit (capture, preset sections,
     variant, LPIPS term: see `_mismatch`); returns (iteration, wall seconds so far, log rows)."""
     state = _read(path, TRAINING_KEYS)
     differs = _mismatch(state, spec, settings, loss_terms, _loss_terms(state, path))

@@ -1,4 +1,4 @@
-"""Configuration of the avatar model (profile section `avatar`): anchors, levels, decoders, refinement.
+"""Configuration of the avatar model (preset section `avatar`): anchors, levels, decoders, refinement.
 
 Defaults are the paper's (Section 3.6); the latent grid is configured in section `field` (pig.field).
 """

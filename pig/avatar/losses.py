@@ -25,7 +25,7 @@ def lpips_term(cfg, device: str | torch.device = "cpu") -> tuple[torch.nn.Module
     """The LPIPS module of Eq. 15 (frozen, on `device`) or None, and the record of its state:
     {"weight", "net", "state" (one of LPIPS_STATES), "detail" (why the weights are absent, else "")}.
 
-    `cfg` is the profile's fit section (pig.avatar.training.FitConfig): weight_lpips, lpips_net, lpips_weights
+    `cfg` is the preset's fit section (pig.avatar.training.FitConfig): weight_lpips, lpips_net, lpips_weights
     ("pretrained" or "random"), lpips_backbone_weights, lpips_linear_weights, seed. Absent pretrained
     weights leave the term out with a one-line notice on stderr; "random" looks up no file.
     """

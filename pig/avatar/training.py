@@ -4,7 +4,7 @@ Eq. 15 per iteration on one random LOD, V views x K timesteps, with the per-grou
 (Eqs. 4-5); writes avatar.pt, train_log.csv and train_log.png. `fit` is the library entry of the fit stage
 (pig.stages.fit) and of the benchmarks.
 
-Speed levers (profile section `fit`, each off in the CPU profiles; benchmarks/NOTES.md, "Fit", measures each):
+Speed levers (preset section `fit`, each off in the CPU presets; benchmarks/NOTES.md, "Fit", measures each):
 `precision` (decoders in TF32 or bf16 autocast, float32 master weights), `compile` (torch.compile of the
 decoder MLPs and of the L1 + SSIM loss, with SSIM's blur as shifted sums that compile into one kernel),
 `batched_render` (one rasterizer call and one loss evaluation for all timesteps and views), `fused_adam`
@@ -33,7 +33,7 @@ from pig.avatar.config import AvatarConfig
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
-from pig.config import ConfigError, load_profile, load_section, resolve_device
+from pig.config import DEFAULT_PRESET, ConfigError, load_preset, load_section, resolve_device
 from pig.data.capture import Capture
 from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
@@ -54,7 +54,7 @@ PRECISIONS = ("float32", "tf32", "bf16")
 
 @dataclass
 class FitConfig:
-    """Profile section `fit`; defaults are the paper's (Section 3.6) with every speed lever off."""
+    """Preset section `fit`; defaults are the paper's (Section 3.6) with every speed lever off."""
 
     iterations: int = 100_000
     views: int = 4  # cameras per timestep per iteration
@@ -259,7 +259,7 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
     return totals
 
 
-def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", variant: str = "pig",
+def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, variant: str = "pig",
         device: torch.device | str = "cpu", on_iteration: Callable[[int], None] | None = None,
         phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False) -> Path:
     """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
@@ -275,25 +275,25 @@ def fit(capture_dir: Path, output_dir: Path, profile_name: str = "cpu-demo", var
     """
     threads = torch.get_num_threads()
     try:
-        return _fit(Path(capture_dir), Path(output_dir), profile_name, variant, resolve_device(str(device), "--device"),
+        return _fit(Path(capture_dir), Path(output_dir), preset_name, variant, resolve_device(str(device), "--device"),
                     on_iteration, phase or (lambda name: nullcontext()), overwrite)
     finally:
         torch.set_num_threads(threads)
 
 
-def _fit(capture_dir: Path, output_dir: Path, profile_name: str, variant: str, device: torch.device,
+def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
          on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
          overwrite: bool) -> Path:
-    profile = load_profile(profile_name)
-    overrides = variant_overrides(profile, variant)
+    preset = load_preset(preset_name)
+    overrides = variant_overrides(preset, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
     if unknown:
-        raise ConfigError(f"{profile['_path']}: variant {variant!r} overrides unknown section(s) {unknown}")
-    avatar_cfg = load_section(profile, "avatar", AvatarConfig, overrides.get("avatar"))
-    fit_cfg = load_section(profile, "fit", FitConfig, overrides.get("fit"))
-    field_cfg = load_section(profile, "field", FieldConfig, overrides.get("field"))
-    precond_cfg = load_section(profile, "precond", PrecondConfig, overrides.get("precond"))
-    raster = load_section(profile, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
+        raise ConfigError(f"{preset['_path']}: variant {variant!r} overrides unknown section(s) {unknown}")
+    avatar_cfg = load_section(preset, "avatar", AvatarConfig, overrides.get("avatar"))
+    fit_cfg = load_section(preset, "fit", FitConfig, overrides.get("fit"))
+    field_cfg = load_section(preset, "field", FieldConfig, overrides.get("field"))
+    precond_cfg = load_section(preset, "precond", PrecondConfig, overrides.get("precond"))
+    raster = load_section(preset, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
     claim_files(output_dir, OUTPUT_FILES, "fit", (capture_dir,), overwrite)

@@ -14,7 +14,7 @@ import numpy as np
 
 from pig.stages._io import atomic_path
 
-from .model import NUM_JOINTS
+from .skeleton import NUM_JOINTS
 from .npz import read_npz
 
 # THuman4 keys -> joint slice of the full pose; eyes (23, 24) stay zero.

@@ -22,15 +22,19 @@ from __future__ import annotations
 import re
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import h5py
 import numpy as np
 
-from pig.body.model import LEFT_HAND, RIGHT_HAND, BodyModel
 from pig.body.params import ParamsError, SmplxParams, from_dna
+from pig.body.skeleton import LEFT_HAND, RIGHT_HAND
 from pig.data.images import decode_image
 from pig.data.raw import CaptureError, RawCamera
+
+if TYPE_CHECKING:
+    from pig.body.model import BodyModel
 
 CAMERA_GROUPS = ("Camera_5mp", "Camera_12mp")  # cams 0..47 and 48..59 in the released data
 CALIBRATION = "Camera_Parameter"
@@ -151,6 +155,8 @@ def _color_correction(value: np.ndarray, where: str, required: bool) -> np.ndarr
 
 
 def _hands_mean(body_model: str | Path | BodyModel) -> np.ndarray:
+    from pig.body.model import BodyModel  # here, not at the top: the workflow imports this reader and needs no torch
+
     model = body_model if isinstance(body_model, BodyModel) else BodyModel.from_file(body_model)
     return model.hands_mean.detach().cpu().double().numpy()
 

@@ -27,7 +27,7 @@ from .precondition import Form, PrecondConfig, PreconditionedTensor
 
 @dataclass
 class FieldConfig:
-    """Profile section `field`: the latent grid's levels, width, box margin and initialisation."""
+    """Preset section `field`: the latent grid's levels, width, box margin and initialisation."""
 
     resolutions: list[int] = field(default_factory=lambda: [8, 24, 40, 56, 72, 88])
     features: int = 16

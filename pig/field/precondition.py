@@ -2,7 +2,7 @@
 
 Implements the dual-level update rules of Eqs. 4-5 (grid levels: lattice L_g; anchors: KNN L_knn).
 
-Forms (`PrecondConfig.form`, profile section `precond`):
+Forms (`PrecondConfig.form`, preset section `precond`):
 - "filter": the stored parameter is x; backward replaces dL/dx by (I + lambda L)^-2 dL/dx, then the
   optimizer steps x. Under plain gradient descent this is Eqs. 4-5 verbatim.
 - "substitute": the stored parameter is u = (I + lambda L) (x - x0) (Large Steps, taken relative to the
@@ -49,7 +49,7 @@ class LinearSystem(Protocol):
 
 @dataclass
 class PrecondConfig:
-    """Profile section `precond`: how the latent grid and the anchors are preconditioned and optimised."""
+    """Preset section `precond`: how the latent grid and the anchors are preconditioned and optimised."""
 
     form: Form = "substitute"
     optimizer: Literal["adam", "uniform_adam", "sgd"] = "adam"

@@ -31,7 +31,7 @@ class RenderResult(NamedTuple):
 
 @dataclass
 class RasterizerConfig:
-    """Profile section `rasterizer`: which backend renders and the CPU compositor's band size."""
+    """Preset section `rasterizer`: which backend renders and the CPU compositor's band size."""
 
     backend: Literal["auto", "gsplat", "cpu"] = "auto"
     max_pairs: int = DEFAULT_MAX_PAIRS

@@ -1,7 +1,7 @@
 """Command-line entry points: an error is one line on stderr, not a traceback, unless one is asked for.
 
 Every `python -m pig...` entry point ends with `raise SystemExit(run_cli(main))` and adds the shared options
-with `add_common_arguments(parser)`. An exception from `main` becomes one line, `<stage>: error: <message>`,
+with `add_common_arguments(parser)`; a stage that reads a compute preset takes it with `add_preset_argument`. An exception from `main` becomes one line, `<stage>: error: <message>`,
 and exit status 1:
 - bad input or a bad environment prints its message as it is: the project's own errors (ConfigError,
   CaptureError, ... all ValueErrors), any other ValueError, OSError (a missing, unreadable or unwritable
@@ -19,6 +19,8 @@ import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
+
+from pig.config import DEFAULT_PRESET
 
 DEBUG_VARIABLE = "PIG_DEBUG"
 TRACEBACK_HINT = f"(run with --traceback or {DEBUG_VARIABLE}=1 for the full traceback)"
@@ -43,6 +45,23 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
     """Add the options every entry point shares: `--traceback`."""
     parser.add_argument("--traceback", action=_TracebackFlag,
                         help=f"on an error, show the full Python traceback instead of one line (or set {DEBUG_VARIABLE}=1)")
+    return parser
+
+
+class _DeprecatedProfile(argparse.Action):
+    """`--profile`, the old name of `--preset` (renamed apart from Snakemake's profiles): works, with a note."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{parser.prog}: note: --profile is deprecated, use --preset (compute presets are in config/presets/)",
+              file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def add_preset_argument(parser: argparse.ArgumentParser, reads: str) -> argparse.ArgumentParser:
+    """Add `--preset NAME|PATH` (`reads`: what the stage takes from it) and its deprecated alias `--profile`."""
+    parser.add_argument("--preset", default=DEFAULT_PRESET,
+                        help=f"compute preset: a name in config/presets/ or a YAML path; {reads} (default: {DEFAULT_PRESET})")
+    parser.add_argument("--profile", dest="preset", action=_DeprecatedProfile, help=argparse.SUPPRESS)
     return parser
 
 

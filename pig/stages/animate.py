@@ -11,9 +11,9 @@ from pathlib import Path
 import torch
 
 from pig.avatar.animation import Orbit, animate
-from pig.config import load_profile, load_section
+from pig.config import load_preset, load_section
 from pig.render.api import RasterizerConfig
-from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,14 +39,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=None, help="length of a still pose's video (default: one revolution)")
     parser.add_argument("--png", action="store_true", help="also write frames/NNNNN.png (RGBA)")
     parser.add_argument("--exr", action="store_true", help="also write frames/NNNNN.exr (R, G, B, A, depth Z)")
-    parser.add_argument("--profile", default="cpu-demo", help="compute profile (its rasterizer section)")
+    add_preset_argument(parser, "its rasterizer section")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true", help="replace an --output folder the animate stage did not write")
     args = parser.parse_args(argv)
     orbit = Orbit(radius=args.orbit_radius, height=args.orbit_height, period_s=args.orbit_period, width=args.size[0],
                   height_px=args.size[1])
-    rasterizer = load_section(load_profile(args.profile), "rasterizer", RasterizerConfig)
+    rasterizer = load_section(load_preset(args.preset), "rasterizer", RasterizerConfig)
     video = animate(args.checkpoint, args.output, args.motion, args.camera, args.capture, args.lod, args.frames, args.fps,
                     args.up, orbit, args.seconds, args.png, args.exr, args.device, rasterizer, args.overwrite)
     print(video)

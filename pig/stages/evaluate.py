@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from pig.config import load_profile, load_section, resolve_device
+from pig.config import load_preset, load_section, resolve_device
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
 from pig.data.raw import CaptureError
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
@@ -33,14 +33,14 @@ from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssi
 from pig.metrics.ssim import ssim, ssim_map
 from pig.metrics.weights import WeightsMissing
 from pig.progress import progress_bar
-from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 from pig.stages._io import read_png, read_record, write_json, write_text
 from pig.stages._outputs import claim_files
 
 
 @dataclass
 class EvaluateConfig:
-    """Profile section `evaluate` (read by the render, evaluate and tables stages)."""
+    """Preset section `evaluate` (read by the render, evaluate and tables stages)."""
 
     lpips_net: Literal["alex", "vgg"] = "alex"  # LPIPS backbone; peers report either, the tables name it
     lpips_backbone_weights: str | None = None  # torchvision checkpoint; None: torch hub cache
@@ -221,12 +221,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"])
     parser.add_argument("--output", type=Path, required=True, help="metrics directory ({split}_lod{l}.csv/.json go here)")
     parser.add_argument("--lod", type=int, nargs="*", default=None, help="levels to evaluate (default: all rendered)")
-    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
+    add_preset_argument(parser, "its evaluate section")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace files of the same names in an --output folder the evaluate stage did not write")
     args = parser.parse_args(argv)
-    cfg = load_section(load_profile(args.profile), "evaluate", EvaluateConfig)
+    cfg = load_section(load_preset(args.preset), "evaluate", EvaluateConfig)
     evaluate_split(args.capture, args.renders, args.split, args.output, cfg, args.lod, args.overwrite)
     return 0
 

@@ -11,21 +11,21 @@ from pathlib import Path
 import torch
 
 from pig.avatar.training import fit
-from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pig.stages.fit", description=__doc__.split("\n")[0])
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory (results/.../capture)")
     parser.add_argument("--output", type=Path, required=True, help="variant directory; gets avatar.pt, train_log.csv/.png")
-    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
-    parser.add_argument("--variant", default="pig", help="method variant from the profile's `variants` section")
+    add_preset_argument(parser, "its avatar, fit, field, precond, rasterizer and variants sections")
+    parser.add_argument("--variant", default="pig", help="method variant from the preset's `variants` section")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace avatar.pt, checkpoint.pt, train_log.* in an --output folder the fit stage did not write")
     args = parser.parse_args(argv)
-    path = fit(args.capture, args.output, args.profile, args.variant, args.device, overwrite=args.overwrite)
+    path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite)
     print(path)
     return 0
 

@@ -1,6 +1,6 @@
-"""Stage `generate`: write the synthetic capture (THuman4 layout + ground-truth meshes) for a compute profile.
+"""Stage `generate`: write the synthetic capture (THuman4 layout + ground-truth meshes) for a compute preset.
 
-The dataset every stage after it reads (DESIGN.md section 4); sizes come from the profile's `synthetic` section.
+The dataset every stage after it reads (DESIGN.md section 4); sizes come from the preset's `synthetic` section.
 """
 from __future__ import annotations
 
@@ -9,15 +9,15 @@ import sys
 import time
 from pathlib import Path
 
-from pig.config import load_profile, load_section
+from pig.config import load_preset, load_section
 from pig.data.synthetic import SyntheticConfig, generate_capture
-from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m pig.stages.generate", description=__doc__.splitlines()[0])
     parser.add_argument("--output", required=True, type=Path, help="subject folder to create (THuman4 layout)")
-    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path (default: cpu-demo)")
+    add_preset_argument(parser, "its synthetic section")
     parser.add_argument("--seed", type=int, default=None, help="override synthetic.seed")
     parser.add_argument("--workers", type=int, default=None, help="override synthetic.workers (render processes)")
     parser.add_argument("--overwrite", action="store_true",
@@ -30,7 +30,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     overrides = {k: v for k, v in (("seed", args.seed), ("workers", args.workers)) if v is not None}
-    cfg = load_section(load_profile(args.profile), "synthetic", SyntheticConfig, overrides)
+    cfg = load_section(load_preset(args.preset), "synthetic", SyntheticConfig, overrides)
     start = time.perf_counter()
     out = generate_capture(args.output, cfg, overwrite=args.overwrite, progress=not args.quiet)
     print(f"generate: wrote {cfg.cameras} cameras x {cfg.frames} frames ({cfg.width}x{cfg.height}) to {out} "

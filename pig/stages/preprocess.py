@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from pig.body.model import BodyModel, BodyModelError
-from pig.config import ConfigError, load_profile, load_section, load_yaml, named_config
+from pig.config import ConfigError, load_preset, load_section, load_yaml, named_config
 from pig.data.capture import MASK_SUFFIX
 from pig.data.formats import FORMATS, capture_format, open_capture
 from pig.data.ground_truth import GT_MESHES, TrueMeshes
@@ -35,7 +35,7 @@ from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.progress import progress_bar
-from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 from pig.stages._io import atomic_path, write_json
 from pig.stages._outputs import claim_dir, resumable_dir
 
@@ -309,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="capture format (default: the dataset's `format`, else thuman4)")
     parser.add_argument("--input", required=True, type=Path, help="raw subject folder (e.g. data/thuman4/subject00)")
     parser.add_argument("--output", required=True, type=Path, help="preprocessed capture folder to write")
-    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path (section preprocess)")
+    add_preset_argument(parser, "its preprocess section")
     parser.add_argument("--dataset", default=None,
                         help="dataset YAML or name under config/datasets/ (its `split:` section and `body_model`)")
     parser.add_argument("--subject", default=None, help="subject name for per-subject split rules (default: input folder name)")
@@ -320,10 +320,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_common_arguments(parser)
     args = parser.parse_args(argv)
-    profile = load_profile(args.profile)
+    preset = load_preset(args.preset)
     dataset = _dataset(args.dataset)
-    per_dataset = ((profile.get("preprocess") or {}).get("datasets") or {}).get(dataset.get("name"))
-    cfg = load_section(profile, "preprocess", PreprocessConfig, overrides=per_dataset)
+    per_dataset = ((preset.get("preprocess") or {}).get("datasets") or {}).get(dataset.get("name"))
+    cfg = load_section(preset, "preprocess", PreprocessConfig, overrides=per_dataset)
     split_cfg = load_section(dataset, "split", SplitConfig)
     split_source = f"{dataset.get('_path', 'default split')}: section 'split'"
     fmt = args.format or dataset.get("format") or "thuman4"

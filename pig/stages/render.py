@@ -20,13 +20,13 @@ import numpy as np
 import torch
 
 from pig.avatar.driver import AvatarDriver
-from pig.config import load_profile, load_section, resolve_device
+from pig.config import load_preset, load_section, resolve_device
 from pig.data.exr import write_exr
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
 from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
-from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 from pig.stages._io import write_json, write_png
 from pig.stages._outputs import build_dir, claim_dir
 from pig.stages.evaluate import EvaluateConfig
@@ -188,14 +188,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory")
     parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"])
     parser.add_argument("--output", type=Path, required=True, help="renders/{split} directory to write")
-    parser.add_argument("--profile", default="cpu-demo", help="compute profile name or YAML path")
+    add_preset_argument(parser, "its evaluate and rasterizer sections")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier render of a split")
     args = parser.parse_args(argv)
-    profile = load_profile(args.profile)
-    cfg = load_section(profile, "evaluate", EvaluateConfig)
-    rasterizer = load_section(profile, "rasterizer", RasterizerConfig)
+    preset = load_preset(args.preset)
+    cfg = load_section(preset, "evaluate", EvaluateConfig)
+    rasterizer = load_section(preset, "rasterizer", RasterizerConfig)
     render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer, args.overwrite)
     return 0
 

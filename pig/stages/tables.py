@@ -6,7 +6,7 @@ Layouts of Section 4 (`--table`):
   row), `{dataset}_lod.csv`; held-out PSNR against training wall time of every variant, `{dataset}_training.png`.
 - `ablation`: the structural ablation (Table 4) in the main table's layout, `{dataset}_ablation.csv`.
 - `noise`: robustness to body-parameter noise (Table 5): the main layout per sigma_body (radians on the pose,
-  and in degrees), `{dataset}_noise.csv`; sigma comes from the profile the variants were fitted with.
+  and in degrees), `{dataset}_noise.csv`; sigma comes from the preset the variants were fitted with.
 - `regions`: the ground-truth metrics of synthetic captures per variant and split, `{dataset}_regions.csv`.
 Summaries of captures with ground truth carry REGION_KEYS (PSNR/SSIM per region, geometry error and
 correspondence drift in mm); the main-layout tables then gain a `{split}_{key}` column each, and leave them out
@@ -28,7 +28,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from pig.stages._cli import add_common_arguments, run_cli  # noqa: E402
+from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli  # noqa: E402
 from pig.stages._io import read_record, write_figure, write_text  # noqa: E402
 from pig.stages._outputs import claim_files  # noqa: E402
 
@@ -322,13 +322,13 @@ def make_table(table: str, dataset: str, summaries: list[Path], variants: list[s
     print(texts[f"{dataset}_{table}.md"])
 
 
-def noise_sigmas(profile: str, variants: list[str]) -> dict[str, float]:
-    """{variant: fit.sigma_body} of `variants` in `profile` (a name or a YAML path), overrides applied."""
+def noise_sigmas(preset: str, variants: list[str]) -> dict[str, float]:
+    """{variant: fit.sigma_body} of `variants` in `preset` (a name or a YAML path), overrides applied."""
     from pig.avatar.training import FitConfig  # here: only the noise table needs it (and torch)
     from pig.avatar.variants import variant_overrides
-    from pig.config import load_profile, load_section
+    from pig.config import load_preset, load_section
 
-    data = load_profile(profile)
+    data = load_preset(preset)
     return {v: load_section(data, "fit", FitConfig, variant_overrides(data, v).get("fit")).sigma_body for v in variants}
 
 
@@ -340,8 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--summaries", type=Path, nargs="+", required=True, help="metrics/{split}_lod{l}.json files")
     parser.add_argument("--train-logs", type=Path, nargs="*", default=[], help="{variant}/train_log.csv files (main table)")
     parser.add_argument("--variants", nargs="+", required=True, help="row order of the tables")
-    parser.add_argument("--profile", default="cpu-demo",
-                        help="profile the variants were fitted with: the noise table reads their fit.sigma_body")
+    add_preset_argument(parser, "the one the variants were fitted with: the noise table reads their fit.sigma_body")
     parser.add_argument("--output", type=Path, required=True, help="tables directory (results/tables)")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
@@ -352,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.table == "main":
         make_tables(args.dataset, args.summaries, args.train_logs, args.variants, args.output, args.overwrite)
     else:
-        sigmas = noise_sigmas(args.profile, args.variants) if args.table == "noise" else None
+        sigmas = noise_sigmas(args.preset, args.variants) if args.table == "noise" else None
         make_table(args.table, args.dataset, args.summaries, args.variants, args.output, sigmas, args.overwrite)
     return 0
 

@@ -1,47 +1,80 @@
-# Shared helpers: dataset lookup, profile, paths, and the settings hashes that make Snakemake rerun a rule when
-# what its stage reads changes. Every rule calls a `python -m pig.stages.*` CLI.
+# Shared helpers of the rules (workflow/rules/*.smk hold rules only): dataset lookup, the compute preset and the
+# resources and conda environment it gives each rule, input functions, and the settings hashes that make Snakemake
+# rerun a rule when what its stage reads changes. Every rule calls a `python -m pig.stages.*` CLI. Nothing here
+# imports torch: it would cost every `snakemake` start seconds (tests/test_workflow.py checks).
 import hashlib
 import json
 import os
+import shlex
 from functools import cache
+from importlib.resources import files
 from pathlib import Path
 
-from pig.avatar.variants import variant_overrides
-from pig.config import load_profile, load_yaml
+from snakemake.exceptions import WorkflowError
+
+from pig.avatar.config import AvatarConfig
+from pig.avatar.variants import table_variants, variant_overrides
+from pig.config import load_preset, load_section, load_yaml
+from pig.data.formats import capture_format
+from pig.data.raw import CaptureError
+from pig.data.synthetic_config import SyntheticConfig
 from pig.resources import check_rule_names, rule_resources
 
-PROFILE = config["profile"]
+SPLITS = ["novel_view", "novel_pose"]
+OTHER_TABLES = ["ablation", "noise", "regions"]
+# Conda environments (`--sdm conda`), relative to workflow/rules/ where the rules are defined.
+CPU_ENV = "../../envs/pig.yaml"
+CUDA_ENV = "../../envs/pig-cuda.yaml"
+MOTIONS = files("pig.data") / "motions"
+ANIMATE_OPTIONS = "--fps 15 --size 384 384"  # the examples: small and quick on a CPU
+# The keys of a dataset YAML that pig.stages.preprocess reads (subject lists and root are not among them).
+PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split")
+
+
+def check_renamed_config_keys():
+    """Refuses the config key `profile`, which named the compute preset before `preset` did."""
+    if "profile" in config:
+        raise WorkflowError(
+            f"config key `profile` is now `preset` (compute presets are config/presets/*.yaml, apart from "
+            f"Snakemake's profiles): use --config preset={config['profile']} or `preset:` in your config file"
+        )
 
 
 @cache
-def profile():
-    """The profile's mapping, read once per Snakemake run so that every rule sees the same settings."""
-    return load_profile(PROFILE)
+def preset():
+    """The preset's mapping, read once per Snakemake run so that every rule sees the same settings."""
+    return load_preset(config["preset"])
 
 
-# Rules whose threads and resources come from the profile's `resources:` section (pig.resources).
+# Rules whose threads and resources come from the preset's `resources:` section (pig.resources).
 PRESET_RESOURCE_RULES = set()
 
 
 def preset_threads(name):
-    """Threads from the profile's `resources:` section, for the rule called `name`."""
+    """Threads from the preset's `resources:` section, for the rule called `name`."""
     PRESET_RESOURCE_RULES.add(name)
-    return rule_resources(profile(), name).threads
+    return rule_resources(preset(), name).threads
 
 
 def preset_resources(name):
-    """Resources (mem_mb, runtime, gpu, slurm_extra) from the profile's `resources:` section, for the rule called
+    """Resources (mem_mb, runtime, gpu, slurm_extra) from the preset's `resources:` section, for the rule called
     `name`."""
     PRESET_RESOURCE_RULES.add(name)
-    return rule_resources(profile(), name).snakemake()
+    return rule_resources(preset(), name).snakemake()
+
+
+def conda_env(name):
+    """The conda environment (envs/) for the rule called `name`, with CUDA PyTorch where the preset gives it a GPU."""
+    return CUDA_ENV if rule_resources(preset(), name).gpu else CPU_ENV
 
 
 def check_preset_resources():
-    """Once all rules exist, refuses entries of the profile's `resources:` section that no rule reads (a typo)."""
-    check_rule_names(profile(), PRESET_RESOURCE_RULES)
+    """Once all rules exist, refuses entries of the preset's `resources:` section that no rule reads (a typo)."""
+    check_rule_names(preset(), PRESET_RESOURCE_RULES)
 
 
 def dataset_config(name):
+    """The dataset YAML named `name` in the config's `datasets`."""
     if name not in config["datasets"]:
         raise ValueError(f"unknown dataset {name!r}: configured datasets are {sorted(config['datasets'])}")
     return load_yaml(config["datasets"][name])  # the stages' reader: ids such as 0102 stay strings
@@ -54,7 +87,9 @@ def subjects(name, table="main"):
     names = dataset_config(name).get(key, None if table == "main" else [])
     valid = isinstance(names, list) and all(isinstance(s, str) and s for s in names)
     if not valid or (table == "main" and not names):
-        raise ValueError(f"{config['datasets'][name]}: `{key}` must be a non-empty list of subject names, found {names!r}")
+        raise ValueError(
+            f"{config['datasets'][name]}: `{key}` must be a non-empty list of subject names, found {names!r}"
+        )
     return names
 
 
@@ -64,7 +99,14 @@ def raw_root(dataset, subject):
 
 
 def default_targets():
-    return [f"results/tables/{config['dataset']}.csv"]
+    """The config dataset's main table, and a montage of each split of its runs for the report."""
+    dataset = config["dataset"]
+    montages = [
+        f"results/{dataset}/{subject}/{variant}/montage/{split}.png"
+        for subject, variant in table_runs(dataset, "main")
+        for split in SPLITS
+    ]
+    return [f"results/tables/{dataset}.csv", *montages]
 
 
 def _canonical(value):
@@ -86,11 +128,11 @@ def settings_hash(settings):
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def profile_settings(*sections, variant=None):
-    """Hash of the profile sections a stage reads, with all overrides of `variant` where the stage applies them."""
-    settings = {section: profile().get(section) for section in sections}
+def preset_settings(*sections, variant=None):
+    """Hash of the preset sections a stage reads, with all overrides of `variant` where the stage applies them."""
+    settings = {section: preset().get(section) for section in sections}
     if variant is not None:
-        settings["variant"] = variant_overrides(profile(), variant)
+        settings["variant"] = variant_overrides(preset(), variant)
     return settings_hash(settings)
 
 
@@ -121,3 +163,127 @@ def file_manifest(paths):
         elif os.path.exists(path):
             add(path, os.stat(path))
     return hashlib.sha256("\n".join(sorted(entries)).encode()).hexdigest()[:16]
+
+
+def synthetic_config():
+    """The preset's `synthetic` section: what the generate stage makes."""
+    return load_section(preset(), "synthetic", SyntheticConfig)
+
+
+def preprocess_inputs(wildcards):
+    """Raw files of the subject; a real dataset whose data or body model is absent fails here, at DAG time."""
+    dataset = dataset_config(wildcards.dataset)
+    source = config["datasets"][wildcards.dataset]
+    root = Path(raw_root(wildcards.dataset, wildcards.subject))
+    if dataset.get("generated"):
+        # Written by the generate rule. A changed file under it reruns preprocess through params.raw, which
+        # Snakemake evaluates for a job downstream of a rerun generate only when it runs, after the rewrite.
+        return {"raw": str(root)}
+    try:
+        required = capture_format(dataset["format"]).required_files(root)
+    except CaptureError as err:
+        raise WorkflowError(f"dataset {wildcards.dataset!r} (root {dataset['root']!r} in {source}): {err}") from None
+    inputs = {"raw": [str(p) for p in required]}
+    body_model = dataset.get("body_model")
+    if not body_model or not Path(body_model).is_file():
+        found = f"{body_model!r} does not exist" if body_model else "it is not set"
+        raise WorkflowError(
+            f"dataset {wildcards.dataset!r}: `body_model` in {source} must name the SMPL-X model file ({found}); "
+            "download SMPLX_NEUTRAL.npz (licensed, smpl-x.is.tue.mpg.de), put it e.g. at "
+            "data/body_models/SMPLX_NEUTRAL.npz and set `body_model:` to that path"
+        )
+    inputs["body_model"] = body_model
+    return inputs
+
+
+def body_model_option(wildcards, input):
+    """`--body-model FILE` for a real dataset, nothing for a generated one (its model is in the raw folder)."""
+    return ["--body-model", input.body_model] if "body_model" in input.keys() else []
+
+
+def preprocess_settings(wildcards):
+    """Hash of what the stage reads besides the raw files: the preset's `preprocess` section with this dataset's
+    entry of `preprocess.datasets`, and the dataset YAML's PREPROCESS_DATASET_KEYS."""
+    dataset = dataset_config(wildcards.dataset)
+    section = dict(preset().get("preprocess") or {})
+    per_dataset = (section.pop("datasets", None) or {}).get(dataset.get("name"))
+    return settings_hash(
+        {
+            "preprocess": section,
+            "dataset_overrides": per_dataset,
+            "dataset": {key: dataset.get(key) for key in PREPROCESS_DATASET_KEYS},
+        }
+    )
+
+
+def raw_manifest(wildcards):
+    """Hash of the sizes and mtimes of the subject's raw folder (images, masks, calibration, parameters), of the
+    files its format requires and of the body model."""
+    paths = [raw_root(wildcards.dataset, wildcards.subject)]
+    if not dataset_config(wildcards.dataset).get("generated"):
+        inputs = preprocess_inputs(wildcards)
+        paths += [*inputs["raw"], inputs["body_model"]]
+    return file_manifest(paths)
+
+
+def lod_levels(variant):
+    """LOD indices 0..L-1 of a variant: the preset's `avatar.levels` after the variant's overrides."""
+    overrides = variant_overrides(preset(), variant).get("avatar")
+    return list(range(load_section(preset(), "avatar", AvatarConfig, overrides).levels))
+
+
+def table_target(dataset, table):
+    """The CSV path of a table: results/tables/{dataset}.csv (main) or {dataset}_{table}.csv."""
+    return f"results/tables/{dataset}.csv" if table == "main" else f"results/tables/{dataset}_{table}.csv"
+
+
+def table_runs(dataset, table):
+    """(subject, variant) pairs of a table: its variants among the config's on the dataset's `subjects` (main and
+    regions tables) or `<table>_subjects` (ablation, noise). Refused at once, naming the target, when it has none."""
+    target = table_target(dataset, table)
+    if table == "regions" and not dataset_config(dataset).get("generated", False):
+        raise ValueError(
+            f"{target}: region metrics need the ground-truth meshes that only generated datasets have "
+            f"(`generated: true`, e.g. synthetic); {config['datasets'][dataset]} is a real capture"
+        )
+    names = table_variants(preset(), config["variants"], table)
+    if not names:
+        raise ValueError(
+            f"{target}: none of the variants {config['variants']} belongs to the {table} table; "
+            "name them with --config 'variants=[pig,...]'"
+        )
+    people = subjects(dataset, "main" if table in ("main", "regions") else table)
+    if not people:
+        raise ValueError(f"{target}: {config['datasets'][dataset]} names no `{table}_subjects`")
+    return [(subject, variant) for subject in people for variant in names]
+
+
+def table_summaries(dataset, table):
+    """The evaluate summaries a table reads: every split and LOD of its runs."""
+    return [
+        f"results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json"
+        for subject, variant in table_runs(dataset, table)
+        for split in SPLITS
+        for lod in lod_levels(variant)
+    ]
+
+
+def table_train_logs(wildcards):
+    """The training logs of the main table's runs (its plot of held-out PSNR against time)."""
+    return [
+        f"results/{wildcards.dataset}/{subject}/{variant}/train_log.csv"
+        for subject, variant in table_runs(wildcards.dataset, "main")
+    ]
+
+
+def motion_argument(wildcards):
+    """`--motion FILE` for a shipped clip, nothing for the turntable (quoted for the shell)."""
+    if wildcards.clip == "turntable":
+        return ""
+    return f"--motion {shlex.quote(str(MOTIONS / f'{wildcards.clip}.npz'))}"
+
+
+def animate_examples():
+    """A turntable and the demo motion of the default dataset's first subject, full method."""
+    subject = subjects(config["dataset"])[0]
+    return [f"results/{config['dataset']}/{subject}/pig/animate/{clip}" for clip in ("turntable", "demo")]

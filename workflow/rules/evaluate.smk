@@ -2,84 +2,44 @@
 # Each table collects the config's `variants` that belong to it (pig.avatar.variants.table_variants), e.g.
 #   snakemake --cores 2 results/tables/synthetic_ablation.csv --config 'variants=[pig,no_precond,template_bound]'
 # fits, renders and scores just those. The regions table needs ground truth: only generated datasets have it.
-from pig.avatar.config import AvatarConfig
-from pig.avatar.variants import table_variants, variant_overrides
-from pig.config import load_section
-
-SPLITS = ["novel_view", "novel_pose"]
-OTHER_TABLES = ["ablation", "noise", "regions"]
-
-
-def lod_levels(variant):
-    """LOD indices 0..L-1 of a variant: the profile's `avatar.levels` after the variant's overrides."""
-    overrides = variant_overrides(profile(), variant).get("avatar")
-    return list(range(load_section(profile(), "avatar", AvatarConfig, overrides).levels))
-
-
-def table_runs(dataset, table):
-    """(subject, variant) pairs of a table: its variants among the config's on the dataset's `subjects` (main and
-    regions tables) or `<table>_subjects` (ablation, noise). Refused at once, naming the target, when it has none."""
-    target = f"results/tables/{dataset}{'' if table == 'main' else '_' + table}.csv"
-    if table == "regions" and not dataset_config(dataset).get("generated", False):
-        raise ValueError(f"{target}: region metrics need the ground-truth meshes that only generated datasets have "
-                         f"(`generated: true`, e.g. synthetic); {config['datasets'][dataset]} is a real capture")
-    names = table_variants(profile(), config["variants"], table)
-    if not names:
-        raise ValueError(f"{target}: none of the variants {config['variants']} belongs to the {table} table; "
-                         "name them with --config 'variants=[pig,...]'")
-    people = subjects(dataset, "main" if table in ("main", "regions") else table)
-    if not people:
-        raise ValueError(f"{target}: {config['datasets'][dataset]} names no `{table}_subjects`")
-    return [(subject, variant) for subject in people for variant in names]
-
-
-def table_summaries(dataset, table):
-    return [
-        f"results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json"
-        for subject, variant in table_runs(dataset, table)
-        for split in SPLITS
-        for lod in lod_levels(variant)
-    ]
 
 
 rule render_split:
+    """Render every view of a held-out split at every level of detail."""
     input:
         checkpoint="results/{dataset}/{subject}/{variant}/avatar.pt",
         capture="results/{dataset}/{subject}/capture/report.json",
     output:
         directory("results/{dataset}/{subject}/{variant}/renders/{split}"),
-    params:
-        capture=lambda wildcards, input: str(Path(input.capture).parent),
-        profile=PROFILE,
-        # Not used by the command: a change reruns the rule (params trigger).
-        settings=profile_settings("evaluate", "rasterizer"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/render_{split}.log",
     benchmark:
         "results/{dataset}/{subject}/{variant}/benchmarks/render_{split}.tsv"
     wildcard_constraints:
         split="|".join(SPLITS),
+    conda:
+        conda_env("render_split")
     threads: preset_threads("render_split")
     resources:
         **preset_resources("render_split"),
+    params:
+        capture=lambda wildcards, input: str(Path(input.capture).parent),
+        preset=config["preset"],
+        # Not used by the command: a change reruns the rule (params trigger).
+        settings=preset_settings("evaluate", "rasterizer"),
     shell:
         "python -m pig.stages.render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
-        "--split {wildcards.split:q} --output {output:q} --profile {params.profile:q} > {log:q} 2>&1"
+        "--split {wildcards.split:q} --output {output:q} --preset {params.preset:q} > {log:q} 2>&1"
 
 
 rule evaluate:
+    """Score one level of detail of a rendered split: PSNR, SSIM, LPIPS per image, FID per set."""
     input:
         renders="results/{dataset}/{subject}/{variant}/renders/{split}",
         capture="results/{dataset}/{subject}/capture/report.json",
     output:
         csv="results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.csv",
         summary="results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json",
-    params:
-        capture=lambda wildcards, input: str(Path(input.capture).parent),
-        output=lambda wildcards, output: str(Path(output.csv).parent),
-        profile=PROFILE,
-        # Not used by the command: a change reruns the rule (params trigger).
-        settings=profile_settings("evaluate"),
     log:
         "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}_lod{lod}.log",
     benchmark:
@@ -87,57 +47,81 @@ rule evaluate:
     wildcard_constraints:
         split="|".join(SPLITS),
         lod=r"\d+",
+    conda:
+        conda_env("evaluate")
     threads: preset_threads("evaluate")
     resources:
         **preset_resources("evaluate"),
+    params:
+        capture=lambda wildcards, input: str(Path(input.capture).parent),
+        output=lambda wildcards, output: str(Path(output.csv).parent),
+        preset=config["preset"],
+        # Not used by the command: a change reruns the rule (params trigger).
+        settings=preset_settings("evaluate"),
     shell:
         "python -m pig.stages.evaluate --capture {params.capture:q} --renders {input.renders:q} "
-        "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} --profile {params.profile:q} "
-        "> {log:q} 2>&1"
+        "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} "
+        "--preset {params.preset:q} > {log:q} 2>&1"
 
 
-# The main and LOD tables and the training plot (held-out PSNR against wall time) of every variant.
 rule make_tables:
+    """The main and LOD tables and the plot of held-out PSNR against training time of every variant."""
     input:
         summaries=lambda wildcards: table_summaries(wildcards.dataset, "main"),
-        train_logs=lambda wildcards: [
-            f"results/{wildcards.dataset}/{subject}/{variant}/train_log.csv"
-            for subject, variant in table_runs(wildcards.dataset, "main")
-        ],
+        train_logs=table_train_logs,
     output:
-        table="results/tables/{dataset}.csv",
+        table=report(
+            "results/tables/{dataset}.csv",
+            caption="../report/main_table.rst",
+            category="Tables",
+            labels={"dataset": "{dataset}", "table": "main"},
+        ),
         markdown="results/tables/{dataset}.md",
-        lod="results/tables/{dataset}_lod.csv",
+        lod=report(
+            "results/tables/{dataset}_lod.csv",
+            caption="../report/lod_table.rst",
+            category="Tables",
+            labels={"dataset": "{dataset}", "table": "levels of detail"},
+        ),
         lod_markdown="results/tables/{dataset}_lod.md",
-        plot="results/tables/{dataset}_training.png",
-    params:
-        variants=config["variants"],
-        output=lambda wildcards, output: str(Path(output.table).parent),
+        plot=report(
+            "results/tables/{dataset}_training.png",
+            caption="../report/training.rst",
+            category="Training",
+            labels={"dataset": "{dataset}", "figure": "held-out PSNR against time"},
+        ),
     log:
         "results/tables/logs/{dataset}.log",
     benchmark:
         "results/tables/benchmarks/{dataset}.tsv"
     wildcard_constraints:
         dataset="|".join(config["datasets"]),
+    conda:
+        CPU_ENV
     threads: preset_threads("make_tables")
     resources:
         **preset_resources("make_tables"),
+    params:
+        variants=config["variants"],
+        output=lambda wildcards, output: str(Path(output.table).parent),
     shell:
         "python -m pig.stages.tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
-        "--train-logs {input.train_logs:q} --variants {params.variants:q} --output {params.output:q} > {log:q} 2>&1"
+        "--train-logs {input.train_logs:q} --variants {params.variants:q} --output {params.output:q} "
+        "> {log:q} 2>&1"
 
 
-# The structural ablation, noise and ground-truth region tables.
 rule make_table:
+    """One of the structural ablation, noise and ground-truth region tables."""
     input:
         summaries=lambda wildcards: table_summaries(wildcards.dataset, wildcards.table),
     output:
-        table="results/tables/{dataset}_{table}.csv",
+        table=report(
+            "results/tables/{dataset}_{table}.csv",
+            caption="../report/other_table.rst",
+            category="Tables",
+            labels={"dataset": "{dataset}", "table": "{table}"},
+        ),
         markdown="results/tables/{dataset}_{table}.md",
-    params:
-        variants=lambda wildcards: table_variants(profile(), config["variants"], wildcards.table),
-        output=lambda wildcards, output: str(Path(output.table).parent),
-        profile=PROFILE,
     log:
         "results/tables/logs/{dataset}_{table}.log",
     benchmark:
@@ -145,10 +129,16 @@ rule make_table:
     wildcard_constraints:
         dataset="|".join(config["datasets"]),
         table="|".join(OTHER_TABLES),
+    conda:
+        CPU_ENV
+    threads: preset_threads("make_table")
     resources:
-        mem_mb=2000,
-        runtime=10,
+        **preset_resources("make_table"),
+    params:
+        variants=lambda wildcards: table_variants(preset(), config["variants"], wildcards.table),
+        output=lambda wildcards, output: str(Path(output.table).parent),
+        preset=config["preset"],
     shell:
         "python -m pig.stages.tables --table {wildcards.table:q} --dataset {wildcards.dataset:q} "
-        "--summaries {input.summaries:q} --variants {params.variants:q} --profile {params.profile:q} "
+        "--summaries {input.summaries:q} --variants {params.variants:q} --preset {params.preset:q} "
         "--output {params.output:q} > {log:q} 2>&1"

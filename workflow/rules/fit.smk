@@ -1,28 +1,32 @@
 # Fit one avatar per (dataset, subject, variant) on the preprocessed capture's train split.
-# A killed fit resumes from {variant}/checkpoint.pt when the rule runs again. Reruns when the profile sections the
+# A killed fit resumes from {variant}/checkpoint.pt when the rule runs again. Reruns when the preset sections the
 # fit reads or the variant's overrides change (params.settings).
 
 
 rule fit_avatar:
+    """Fit one avatar (a method variant) to a preprocessed capture's training views."""
     input:
         capture="results/{dataset}/{subject}/capture/report.json",
     output:
         checkpoint="results/{dataset}/{subject}/{variant}/avatar.pt",
         log_csv="results/{dataset}/{subject}/{variant}/train_log.csv",
-    params:
-        capture=lambda wildcards, input: str(Path(input.capture).parent),
-        output=lambda wildcards, output: str(Path(output.checkpoint).parent),
-        profile=PROFILE,
-        # Not used by the command: a change reruns the rule (params trigger).
-        settings=lambda wildcards: profile_settings(
-            "avatar", "fit", "field", "precond", "rasterizer", variant=wildcards.variant),
     log:
         "results/{dataset}/{subject}/{variant}/logs/fit.log",
     benchmark:
         "results/{dataset}/{subject}/{variant}/benchmarks/fit.tsv"
+    conda:
+        conda_env("fit_avatar")
     threads: preset_threads("fit_avatar")
     resources:
         **preset_resources("fit_avatar"),
+    params:
+        capture=lambda wildcards, input: str(Path(input.capture).parent),
+        output=lambda wildcards, output: str(Path(output.checkpoint).parent),
+        preset=config["preset"],
+        # Not used by the command: a change reruns the rule (params trigger).
+        settings=lambda wildcards: preset_settings(
+            "avatar", "fit", "field", "precond", "rasterizer", variant=wildcards.variant
+        ),
     shell:
         "python -m pig.stages.fit --capture {params.capture:q} --output {params.output:q} "
-        "--profile {params.profile:q} --variant {wildcards.variant:q} > {log:q} 2>&1"
+        "--preset {params.preset:q} --variant {wildcards.variant:q} > {log:q} 2>&1"

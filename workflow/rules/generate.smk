@@ -1,30 +1,27 @@
 # Generate the built-in synthetic subject (THuman4 layout + ground-truth meshes) under the synthetic
-# dataset's root; its sizes come from the profile's `synthetic` section (pig.data.synthetic).
-from pig.config import load_section
-from pig.data.synthetic import SyntheticConfig
-
-
-def synthetic_config():
-    return load_section(profile(), "synthetic", SyntheticConfig)
+# dataset's root; its sizes come from the preset's `synthetic` section (pig.data.synthetic_config).
 
 
 rule generate_capture:
+    """Render the synthetic subject: multi-view video, masks, cameras, SMPL-X parameters, true meshes."""
     output:
-        directory(str(Path(dataset_config("synthetic")["root"]) / "{subject}")),
-    params:
-        profile=PROFILE,
-        # Not used by the command: a changed `synthetic` section changes this and so reruns the rule.
-        settings=repr(synthetic_config()),
+        directory(raw_root("synthetic", "{subject}")),
     log:
         "results/synthetic/logs/generate_{subject}.log",
     benchmark:
         "results/synthetic/benchmarks/generate_{subject}.tsv"
+    conda:
+        CPU_ENV
     threads: synthetic_config().workers
     resources:
         gpu=0,
         # Per render process: a 256 MB ray cache plus chunked casting and one view's buffers.
         mem_mb=1500 + 800 * synthetic_config().workers,
         runtime=10 + synthetic_config().cameras * synthetic_config().frames // 100,
+    params:
+        preset=config["preset"],
+        # Not used by the command: a changed `synthetic` section changes this and so reruns the rule.
+        settings=repr(synthetic_config()),
     shell:
-        "python -m pig.stages.generate --output {output:q} --profile {params.profile:q} --workers {threads} "
+        "python -m pig.stages.generate --output {output:q} --preset {params.preset:q} --workers {threads} "
         "--overwrite --quiet > {log:q} 2>&1"
