@@ -226,16 +226,6 @@ def _synthetic_workdir(tmp_path: Path) -> Path:
     return work
 
 
-def _rules(output: str) -> dict[str, int]:
-    counts = {}
-    for line in output.split("Job stats:", 1)[1].splitlines()[3:]:
-        rule, count = line.split()
-        if rule == "total":
-            return counts
-        counts[rule] = int(count)
-    raise AssertionError(output[-3000:])
-
-
 @pytest.fixture(scope="module")
 def snakemake_run():
     from test_workflow import snakemake_run
@@ -244,6 +234,8 @@ def snakemake_run():
 
 
 def test_table_targets_schedule_just_the_variants_of_their_table(tmp_path, snakemake_run):
+    from test_workflow import job_counts
+
     work = _synthetic_workdir(tmp_path)
     settings = ["--config", "preset=config/test preset.yaml", "variants=[pig,template_bound,noise_0.1,lod_1of1]"]
     # test preset: 2 levels, lod_1of1 1; 2 splits; one subject.
@@ -252,13 +244,13 @@ def test_table_targets_schedule_just_the_variants_of_their_table(tmp_path, snake
     for table, variants in expected.items():
         output = snakemake_run(work, f"results/tables/synthetic_{table}.csv", "--dry-run", "--printshellcmds", *settings)
         levels = sum(1 if v == "lod_1of1" else 2 for v in variants)
-        assert _rules(output) == {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": len(variants),
-                                  "render_split": 2 * len(variants), "evaluate": 2 * levels, "make_table": 1}
+        assert job_counts(output) == {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": len(variants),
+                                      "render_split": 2 * len(variants), "evaluate": 2 * levels, "make_table": 1}
         command = next(line for line in output.splitlines() if "pig.stages.tables" in line)
         assert f"--table {table} " in command and f"--variants {' '.join(variants)} " in command
         assert "--preset 'config/test preset.yaml'" in command
     output = snakemake_run(work, "results/tables/synthetic.csv", "--dry-run", "--quiet", "rules", *settings)
-    assert _rules(output)["make_tables"] == 1 and _rules(output)["fit_avatar"] == 4
+    assert job_counts(output)["make_tables"] == 1 and job_counts(output)["fit_avatar"] == 4
 
 
 def _failing_snakemake(workdir: Path, *args: str) -> str:

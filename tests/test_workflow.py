@@ -71,6 +71,11 @@ def scheduled(workdir: Path, target: str = TARGET) -> dict[str, int]:
     output = snakemake_run(workdir, target, "--dry-run", "--quiet", "rules")
     if "Nothing to be done" in output:
         return {}
+    return job_counts(output)
+
+
+def job_counts(output: str) -> dict[str, int]:
+    """{rule: jobs} of the "Job stats" table in Snakemake's output."""
     assert "Job stats:" in output, output[-3000:]
     counts = {}
     for line in output.split("Job stats:", 1)[1].splitlines()[3:]:

@@ -116,17 +116,28 @@ def lpips_column(summaries: pd.DataFrame) -> str:
     return f"lpips_{nets.iloc[0]}"
 
 
+def finest_rows(summaries: pd.DataFrame) -> pd.DataFrame:
+    """The summaries at each variant's finest LOD."""
+    return summaries[summaries["lod"] == summaries.groupby("variant")["lod"].transform("max")]
+
+
+def finest_by_variant(summaries: pd.DataFrame, variants: list[str]):
+    """(variant, its summaries at its finest LOD) for each of `variants`, in order; a variant without any is refused."""
+    finest = finest_rows(summaries)
+    for variant in variants:
+        part = finest[finest["variant"] == variant]
+        if part.empty:
+            raise ValueError(f"no summaries for variant {variant!r}; found {sorted(summaries['variant'].unique())}")
+        yield variant, part
+
+
 def main_table(summaries: pd.DataFrame, variants: list[str], blank: bool = True) -> pd.DataFrame:
     """Tables 1-2: per variant (finest LOD, mean over subjects) novel-view and novel-pose metrics and splats,
     then `{split}_{key}` per REGION_KEYS where the summaries have them; with `blank`, the black-image row."""
     lpips = lpips_column(summaries)
     regions = REGION_KEYS if has_regions(summaries) else ()
-    finest = summaries[summaries["lod"] == summaries.groupby("variant")["lod"].transform("max")]
     rows = []
-    for variant in variants:
-        part = finest[finest["variant"] == variant]
-        if part.empty:
-            raise ValueError(f"no summaries for variant {variant!r}; found {sorted(summaries['variant'].unique())}")
+    for variant, part in finest_by_variant(summaries, variants):
         row = {"variant": variant}
         for split in SPLITS:
             rows_split = part[part["split"] == split]
@@ -140,7 +151,7 @@ def main_table(summaries: pd.DataFrame, variants: list[str], blank: bool = True)
         row["notes"] = _notes(part)
         rows.append(row)
     if blank:
-        rows.append(_blank_row(finest, regions))
+        rows.append(_blank_row(finest_rows(summaries), regions))
     return pd.DataFrame(rows).rename(columns={f"{split}_lpips": f"{split}_{lpips}" for split in SPLITS})
 
 
@@ -173,12 +184,8 @@ def regions_table(summaries: pd.DataFrame, variants: list[str]) -> pd.DataFrame:
     if not has_regions(summaries):
         raise ValueError(f"no summary holds the ground-truth region metrics ({', '.join(REGION_KEYS)}): only captures "
                          "with ground truth (a generated dataset such as synthetic) have them")
-    finest = summaries[summaries["lod"] == summaries.groupby("variant")["lod"].transform("max")]
     rows = []
-    for variant in variants:
-        part = finest[finest["variant"] == variant]
-        if part.empty:
-            raise ValueError(f"no summaries for variant {variant!r}; found {sorted(summaries['variant'].unique())}")
+    for variant, part in finest_by_variant(summaries, variants):
         for split in SPLITS:
             rows_split = part[part["split"] == split]
             if not rows_split.empty:
