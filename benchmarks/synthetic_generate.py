@@ -15,9 +15,9 @@ from pathlib import Path
 
 from pig.body.standin import make_standin_arrays
 from pig.config import load_preset, load_section
-from pig.data import synthetic_render
 from pig.data.synthetic import SyntheticConfig, build_scene, generate_capture
-from pig.data.synthetic_render import render_frame
+from pig.data.synthetic import render as synthetic_render
+from pig.data.synthetic.render import render_frame
 
 
 def cpu_seconds() -> float:

@@ -315,7 +315,7 @@ def test_demo_clip_ships_loads_and_regenerates(tmp_path):
 
 def test_demo_differs_from_the_default_training_motion():
     from pig.data.synthetic import SyntheticConfig
-    from pig.data.synthetic_motion import Motion as SyntheticMotion
+    from pig.data.synthetic.motion import Motion as SyntheticMotion
 
     cfg = SyntheticConfig()
     times = np.arange(cfg.frames) * (cfg.duration_s / cfg.frames)

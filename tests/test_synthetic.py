@@ -13,12 +13,12 @@ from scipy.spatial import cKDTree
 from pig.body.model import SMPLX_JOINT_NAMES, BodyModel
 from pig.body.params import from_thuman
 from pig.config import ConfigError, load_preset, load_section
-from pig.data import synthetic
 from pig.data.formats import open_capture
 from pig.data.synthetic import SyntheticConfig, SyntheticError, build_scene, generate_capture
-from pig.data.synthetic_garment import AROUND
-from pig.data.synthetic_rig import pixel_rays
-from pig.data.synthetic_texture import ValueNoise, body_albedo, garment_albedo
+from pig.data.synthetic import capture as synthetic_capture
+from pig.data.synthetic.garment import AROUND
+from pig.data.synthetic.rig import pixel_rays
+from pig.data.synthetic.texture import ValueNoise, body_albedo, garment_albedo
 from pig.stages import generate
 from pig.stages._cli import run_cli
 from pig.stages._outputs import MARKER
@@ -152,7 +152,7 @@ def test_failed_generation_leaves_nothing(tmp_path, cfg, monkeypatch):
     def fail(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(synthetic, "_render_all", fail)
+    monkeypatch.setattr(synthetic_capture, "_render_all", fail)
     with pytest.raises(RuntimeError, match="disk full"):
         generate_capture(tmp_path / "subject00", cfg, progress=False)
     assert list(tmp_path.iterdir()) == []
@@ -164,7 +164,7 @@ def test_bad_settings_are_named():
     with pytest.raises(ConfigError, match=r"test\.yaml: section 'synthetic': unknown key\(s\) \['camras'\]"):
         load_section(load_preset("test"), "synthetic", SyntheticConfig, {"camras": 3})
     with pytest.raises(SyntheticError, match="nowhere.npz does not exist"):
-        synthetic.body_model_arrays(SyntheticConfig(body_model="/nowhere.npz"))
+        synthetic_capture.body_model_arrays(SyntheticConfig(body_model="/nowhere.npz"))
 
 
 # ---------------------------------------------------------------- garment

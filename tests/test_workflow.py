@@ -22,7 +22,7 @@ import snakemake.cli
 import yaml
 
 import pig.data.formats  # noqa: F401  (imported by the workflow at DAG time; loaded once here for the forks)
-import pig.data.synthetic  # noqa: F401
+import pig.data.synthetic.config  # noqa: F401
 from pig.stages.evaluate import EvaluateConfig, evaluate_split
 
 REPO = Path(__file__).resolve().parent.parent

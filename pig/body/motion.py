@@ -333,11 +333,11 @@ DEMO_WALK_SPEED = 0.15  # m/s forward drift
 def demo_motion_arrays() -> dict[str, np.ndarray]:
     """The shipped demo clip in the AMASS SMPL-X layout, z-up like AMASS, float32; deterministic.
 
-    The synthetic generator's motion (pig.data.synthetic_motion) with another seed, larger joint angles
+    The synthetic generator's motion (pig.data.synthetic.motion) with another seed, larger joint angles
     and a slow forward walk, 4.8 s at 30 fps. World rotation y-up -> z-up with J0 taken as 0: any J0 only
     shifts every frame by one constant, which `align_motion` removes.
     """
-    from pig.data.synthetic_motion import Motion as SyntheticMotion
+    from pig.data.synthetic.motion import Motion as SyntheticMotion
 
     times = np.arange(DEMO_FRAMES) / DEMO_FPS
     generator = SyntheticMotion(DEMO_SEED, ground_offset=0.0)

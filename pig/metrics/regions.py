@@ -1,7 +1,7 @@
 """Image regions from the true meshes and PSNR/SSIM restricted to a region.
 
 A pixel's region (background, body, garment) is that of the first true triangle its centre ray meets, cast with
-Embree as the synthetic generator's renderer casts its rays (pig.data.synthetic_render), through the pinhole
+Embree as the synthetic generator's renderer casts its rays (pig.data.synthetic.render), through the pinhole
 camera of the preprocessed image; a z-buffer at pixel centres gives the same labels. Ground-truth metrics of a
 synthetic capture (issue 13), no paper equation.
 """
@@ -15,7 +15,7 @@ import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from pig.data.raw import RawCamera
-from pig.data.synthetic_rig import pixel_rays
+from pig.data.synthetic.rig import pixel_rays
 from pig.metrics.ssim import RADIUS
 
 BACKGROUND, BODY, GARMENT = 0, 1, 2

@@ -17,7 +17,7 @@ from pig.avatar.variants import table_variants, variant_overrides
 from pig.config import load_preset, load_section, load_yaml
 from pig.data.formats import capture_format
 from pig.data.raw import CaptureError
-from pig.data.synthetic_config import SyntheticConfig
+from pig.data.synthetic.config import SyntheticConfig
 from pig.resources import check_rule_names, rule_resources
 
 SPLITS = ["novel_view", "novel_pose"]

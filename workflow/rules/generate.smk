@@ -1,5 +1,5 @@
 # Generate the built-in synthetic subject (THuman4 layout + ground-truth meshes) under the synthetic
-# dataset's root; its sizes come from the preset's `synthetic` section (pig.data.synthetic_config).
+# dataset's root; its sizes come from the preset's `synthetic` section (pig.data.synthetic.config).
 
 
 rule generate_capture:

@@ -11,9 +11,10 @@ import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from .raw import RawCamera
-from .synthetic_rig import pixel_rays
-from .synthetic_texture import ValueNoise, body_albedo, garment_albedo
+from pig.data.raw import RawCamera
+
+from .rig import pixel_rays
+from .texture import ValueNoise, body_albedo, garment_albedo
 
 LIGHTS = (  # (direction towards the light, strength): a key light above front-left and a weak fill
     (np.array([0.4, 0.8, 0.6]) / np.linalg.norm([0.4, 0.8, 0.6]), 0.75),
@@ -81,7 +82,7 @@ def _cached_rays(camera: RawCamera, supersample: int) -> tuple[np.ndarray, np.nd
     origin, directions = pixel_rays(camera, supersample)
     rays = (origin, directions.astype(np.float32))
     if sum(d.nbytes for _, d in _RAYS.values()) + rays[1].nbytes > RAY_CACHE_BYTES:
-        _RAYS.clear()  # work items group cameras to fit (pig.data.synthetic._tasks): older groups are done
+        _RAYS.clear()  # work items group cameras to fit (pig.data.synthetic.capture._tasks): older groups are done
     _RAYS[key] = rays
     return rays
 

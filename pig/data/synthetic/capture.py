@@ -17,16 +17,16 @@ import torch
 from pig.body.model import BodyModel
 from pig.body.npz import read_npz
 from pig.body.standin import make_standin_arrays
+from pig.data.raw import RawCamera
 from pig.progress import progress_bar
 from pig.stages._io import write_json
 from pig.stages._outputs import build_dir, claim_dir
 
-from .raw import RawCamera
-from .synthetic_config import SyntheticConfig, SyntheticError
-from .synthetic_garment import build_skirt, pose_skirt, secondary_motion
-from .synthetic_motion import Motion
-from .synthetic_render import RAY_CACHE_BYTES, SceneAppearance, render_frame
-from .synthetic_rig import make_ring
+from .config import SyntheticConfig, SyntheticError
+from .garment import build_skirt, pose_skirt, secondary_motion
+from .motion import Motion
+from .render import RAY_CACHE_BYTES, SceneAppearance, render_frame
+from .rig import make_ring
 
 
 @functools.lru_cache(maxsize=2)

@@ -1,4 +1,4 @@
-"""The `synthetic` section of a compute preset: what the generator of the synthetic capture makes (pig.data.synthetic).
+"""The `synthetic` section of a compute preset: what the synthetic capture generator (pig.data.synthetic.capture) makes.
 
 Apart from the generator, which needs torch, so that the workflow reads the section when it builds its DAG.
 """
