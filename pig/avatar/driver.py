@@ -27,14 +27,11 @@ import numpy as np
 import torch
 
 from pig.body.rotation import axis_angle_to_matrix, geodesic_distance
+from pig.cuda_graphs import capture
 
 from .decoders import DecodedAnchors
 from .model import AvatarModel, Gaussians
-from .nearest_pose import BODY_JOINTS
-
-# BODY_JOINTS as a slice: a frame graph cannot capture the host-to-device copy of an index list.
-_BODY_SLICE = slice(BODY_JOINTS[0], BODY_JOINTS[-1] + 1)
-assert tuple(range(_BODY_SLICE.start, _BODY_SLICE.stop)) == BODY_JOINTS
+from .nearest_pose import BODY_SLICE
 
 
 class AvatarDriver:
@@ -179,7 +176,7 @@ class AvatarDriver:
         Every operation is a device kernel with static shapes, so the function can be captured as a graph."""
         model = self.model
         train_rotations, decoded_all = self._train_rotations, self._decoded_all[lod]
-        query = axis_angle_to_matrix(pose[_BODY_SLICE])  # (21, 3, 3)
+        query = axis_angle_to_matrix(pose[BODY_SLICE])  # (21, 3, 3)
         step = geodesic_distance(query[None], train_rotations).sum(-1).argmin()[None]  # ties -> earliest
         betas, _ = self.refined()
         translation = model.transl[step] if transl is None else transl
@@ -202,7 +199,7 @@ class AvatarDriver:
         query = self._pose(pose)
         translation = None if transl is None else self._transl(transl)
         if self._train_rotations is None:
-            self._train_rotations = axis_angle_to_matrix(self.model.pose_init[:, _BODY_SLICE])
+            self._train_rotations = axis_angle_to_matrix(self.model.pose_init[:, BODY_SLICE])
         self.refined()  # fills the per-avatar caches outside the graph: the frame only reads them
         self.decoded_all(lod)
         if query.device.type != "cuda":
@@ -272,17 +269,7 @@ class _FrameGraph:
         self.pose = pose.clone()
         self.transl = None if transl is None else transl.clone()
         compiled = torch.compile(frame, dynamic=False)
-        self._run = lambda: compiled(lod, self.pose, self.transl)
-        # Compile and warm the allocator on a side stream before capturing (CUDA graph rules).
-        side = torch.cuda.Stream(pose.device)
-        side.wait_stream(torch.cuda.current_stream(pose.device))
-        with torch.cuda.stream(side):
-            for _ in range(2):
-                self._run()
-        torch.cuda.current_stream(pose.device).wait_stream(side)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.outputs = self._run()
+        self.graph, self.outputs = capture(lambda: compiled(lod, self.pose, self.transl), pose.device, warmups=2)
 
     def run(self, pose: torch.Tensor, transl: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
         self.pose.copy_(pose)

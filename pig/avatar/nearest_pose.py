@@ -9,8 +9,10 @@ import torch
 
 from pig.body.rotation import axis_angle_to_matrix, geodesic_distance
 
-# SMPL-X body-pose joints (1..21): the global orientation does not change the clothing state.
-BODY_JOINTS = tuple(range(1, 22))
+# SMPL-X body-pose joints (1..21): the global orientation does not change the clothing state. As a slice too: a
+# CUDA graph (pig.avatar.driver's frame) cannot capture the host-to-device copy of an index list.
+BODY_SLICE = slice(1, 22)
+BODY_JOINTS = tuple(range(BODY_SLICE.start, BODY_SLICE.stop))
 
 
 def pose_distances(query: torch.Tensor, train: torch.Tensor, joints: tuple[int, ...] = BODY_JOINTS) -> torch.Tensor:

@@ -32,8 +32,8 @@ asks (100k anchors, tol 1e-5: 58 at lambda = 8, ~1500 at 1e6, ~1800 at 1e8), and
 A x keeps the reachable relative residual above roughly 1e-15 lambda (1e-7 to 1e-6 at lambda = 1e8; a
 smaller tol ends in the warning). With `graphs` on a CUDA device, each block of check_every iterations (and
 the residual the check reads) is captured once per right-hand-side shape as a CUDA graph and replayed: the
-iterations are a few tiny kernels each, so launching them from Python cost more than running them. Float64 costs 1.1-1.3x the float32 solve time (100k anchors,
-lambda = 8, one CPU thread, same process).
+iterations are a few tiny kernels each, so launching them from Python cost more than running them. Float64
+costs 1.1-1.3x the float32 solve time (100k anchors, lambda = 8, one CPU thread, same process).
 """
 from __future__ import annotations
 
@@ -44,6 +44,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 import torch
+
+from pig.cuda_graphs import capture
 
 
 class CGNotConverged(RuntimeWarning):
@@ -140,16 +142,7 @@ class _CGBlockGraph:
         self.rz = torch.zeros(shape[1], dtype=torch.float64, device=device)
         self.norm = torch.ones(shape[1], dtype=torch.float64, device=device)
         self.residual = torch.zeros((), dtype=torch.float64, device=device)
-        self._block = lambda: self._run(iterate, steps, rows, inv_diag, lam)
-        # Capture needs its kernels compiled and its allocator warm: run the block once on a side stream first.
-        side = torch.cuda.Stream(device)
-        side.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.stream(side):
-            self._block()
-        torch.cuda.current_stream(device).wait_stream(side)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self._block()
+        self.graph, _ = capture(lambda: self._run(iterate, steps, rows, inv_diag, lam), device)
 
     def _run(self, iterate, steps, rows, inv_diag, lam) -> None:
         x, r, p, rz = self.x, self.r, self.p, self.rz
