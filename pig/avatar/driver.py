@@ -236,8 +236,6 @@ class AvatarDriver:
         """Drop what is cached per pose (nearest timesteps, decoded timesteps); per-LOD work stays."""
         self._nearest.clear()
         self._decoded.clear()
-        self._decoded_all.clear()
-        self._frames.clear()
 
     # ---- input checks ----
 
