@@ -264,6 +264,7 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", type=Path, default=None, help="with --eval-every: plot of the held-out PSNR curves")
     parser.add_argument("--finest-only", action="store_true", help="budget mode: evaluate the finest LOD only")
     parser.add_argument("--warm-compile", type=int, default=0, help="untimed fit of N iterations before the variants")
+    parser.add_argument("--capture-only", action="store_true", help="generate and preprocess the capture, then stop")
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("fit_gpu: no CUDA device", file=sys.stderr)
@@ -286,6 +287,9 @@ def main(argv=None) -> int:
                     "--format", "thuman4", "--body-model", str(raw / "body_model.npz"), "--no-progress"])
         stamps["preprocess_s"] = time.perf_counter() - t0
 
+    if args.capture_only:
+        print(f"capture in {capture}: {stamps or 'kept'}")
+        return 0
     variants = [parse_variant(v) for v in args.variant] or [("profile", {})]
     if args.warm_compile:
         warm = argparse.Namespace(**{**vars(args), "iterations": max(args.warm_compile, 2), "warmup": 1, "profile_phases": 0,

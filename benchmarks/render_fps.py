@@ -17,6 +17,7 @@ untrained, so the splats are random-ish and only the timings mean anything.
     python benchmarks/render_fps.py --device cuda                          # paper sizes, 1330 x 1150
     python benchmarks/render_fps.py --device cuda --checkpoint avatar.pt --precision bf16
     python benchmarks/render_fps.py --device cpu --anchors 4000 --width 160 --height 140 --repeats 3
+    python benchmarks/render_fps.py --device cuda --precision bf16 --profile-frame 20   # + where a frame's time goes
 """
 from __future__ import annotations
 
@@ -112,6 +113,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", choices=["float32", "tf32", "bf16"], default="float32",
                         help="decoder MLPs: float32, TF32 matmuls (CUDA) or bf16 autocast")
     parser.add_argument("--threads", type=int, help="torch CPU threads")
+    parser.add_argument("--real-time-only", action="store_true", help="only the real-time table (and --profile-frame)")
+    parser.add_argument("--profile-frame", type=int, default=0, metavar="N",
+                        help="after the real-time table: N frames of each LOD under torch.profiler, the graph's kernels "
+                             "and the eager frame's operators by device time")
+    parser.add_argument("--op-rows", type=int, default=15, help="rows of each --profile-frame table")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -149,6 +155,12 @@ def main(argv: list[str] | None = None) -> int:
           f"{model.cfg.hidden_layers}x{model.cfg.hidden_width}, {model.num_timesteps} training timesteps; {args.width} x "
           f"{args.height}; {args.device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else f'{torch.get_num_threads()} threads'}); "
           f"decoders {args.precision}; median of {args.repeats} frames [ms]")
+    if args.real_time_only:
+        with torch.no_grad():
+            driver = real_time_table(model, poses, rows, transl, raster, args.repeats, device)
+            if args.profile_frame:
+                profile_frames(driver, poses, transl, args.profile_frame, args.op_rows, device)
+        return 0
     header = (f"| LOD | splats | old | fast | fast FPS | {' | '.join(PARTS)} | raster alone | fast / raster | "
               f"same-t fast | same-t / raster | old / fast |")
     print(header + "\n|" + "---|" * (header.count("|") - 1))
@@ -206,11 +218,42 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {lod} | {model.level_sizes[lod]} | {old_ms:.2f} | {fast_ms:.2f} | {1e3 / fast_ms:.1f} | {cells} | "
                   f"{alone_ms:.2f} | {fast_ms / alone_ms:.2f} | {same_ms:.2f} | {same_ms / same_alone_ms:.2f} | "
                   f"{old_ms / fast_ms:.2f} |", flush=True)
-        real_time_table(model, poses, rows, transl, raster, args.repeats, device)
+        driver = real_time_table(model, poses, rows, transl, raster, args.repeats, device)
+        if args.profile_frame:
+            profile_frames(driver, poses, transl, args.profile_frame, args.op_rows, device)
     return 0
 
 
-def real_time_table(model, poses, rows, transl, raster, repeats: int, device: torch.device) -> None:
+def profile_frames(driver: AvatarDriver, poses, transl, count: int, rows: int, device: torch.device) -> None:
+    """Where a real-time frame's device time goes, per LOD: the captured graph's kernels (as replayed), then the
+    same frame function run eagerly, whose operator names say which part of the frame a cost belongs to."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    sort = "cuda_time_total" if device.type == "cuda" else "cpu_time_total"
+    for lod in range(driver.model.num_levels):
+        if not driver.frame_graph_fits(lod):
+            continue
+        query = [driver._pose(p) for p in poses[:count]]
+        translation = driver._transl(transl)
+        for label, run in (("graph replay", lambda i: driver.posed_frame(lod, poses[i], transl)),
+                           ("eager frame", lambda i: driver._frame(lod, query[i], translation))):
+            run(0)
+            sync(device)
+            with profile(activities=activities) as prof:
+                for i in range(count):
+                    run(i)
+                sync(device)
+            events = prof.key_averages()
+            kernels = [e for e in events if e.device_type == torch.autograd.DeviceType.CUDA]
+            kernel_us = sum(e.device_time_total for e in kernels) / count
+            launched = sum(e.count for e in kernels) / count
+            print(f"\nLOD {lod} {label}, {count} frames: {launched:.0f} kernels and {kernel_us / 1e3:.3f} ms of kernel time "
+                  f"per frame")
+            print(events.table(sort_by=sort, row_limit=rows, max_name_column_width=60))
+
+
+def real_time_table(model, poses, rows, transl, raster, repeats: int, device: torch.device) -> AvatarDriver:
     """The real-time path per LOD: frame time, raster alone on its splats, image parity with the old path."""
     print(f"\nReal-time path (AvatarDriver frame_graph=True), median of {repeats} frames [ms]; set-up = decoding every "
           f"timestep at the LOD + compiling + capturing, once")
@@ -239,6 +282,7 @@ def real_time_table(model, poses, rows, transl, raster, repeats: int, device: to
         del kept
         print(f"| {lod} | {model.level_sizes[lod]} | {frame_ms:.3f} | {1e3 / frame_ms:.0f} | {splats_ms:.3f} | "
               f"{alone_ms:.3f} | {frame_ms / alone_ms:.2f} | {max(differences):.2e} | {setup_s:.1f} |", flush=True)
+    return driver
 
 
 if __name__ == "__main__":

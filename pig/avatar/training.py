@@ -325,10 +325,24 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
     lpips, lpips_record = lpips_term(fit_cfg, device)
     loss_terms = {"lpips": lpips_record}
+    # Delayed grid preconditioning: plain grid steps (lambda 0) before iteration `grid_delay`. A checkpoint written
+    # before the switch stores the grid under lambda 0; the final avatar.pt always under the preset's lambdas.
+    grid_delay = precond_cfg.grid_delay if precond_cfg.form != "none" else 0
+    grid_lambdas = precond_cfg.grid_lambdas(len(model.grid.levels))
+    if grid_delay:
+        model.grid.set_lambdas([0.0] * len(grid_lambdas))
+
+    def start_grid_smoothing() -> None:
+        model.grid.set_lambdas(grid_lambdas)
+        for level in model.grid.levels:  # moments of lambda-0 gradients would damp the smoothed steps for ~1/(1 - beta2)
+            optimizers[0].state.pop(level.param, None)
+
     start, wall_before, rows = 0, 0.0, []
     if state_path.exists():
         start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings, loss_terms)
         print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
+        if grid_delay and start > grid_delay:
+            model.grid.set_lambdas(grid_lambdas, keep_values=False)
 
     background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
     loss = LossTerms(fit_cfg, background, lpips, fit_cfg.compile)
@@ -377,6 +391,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 if trained >= fit_cfg.time_budget_s:
                     break
                 done = max(done, trained / fit_cfg.time_budget_s)
+            if grid_delay and i == grid_delay:
+                start_grid_smoothing()
             factor = lr_factor(done, i, fit_cfg.lr_warmup, fit_cfg.lr_final)
             for opt, lrs in zip(optimizers, base_lrs):
                 for group, lr in zip(opt.param_groups, lrs):
@@ -424,6 +440,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
               f"of {1000 * per_iteration:.0f} ms) over {len(waits)} iterations; {source.decoded} views decoded, "
               f"{source.hits} from the cache, at most {source.peak_held} decoded views held", file=sys.stderr)
 
+    if grid_delay and iteration <= grid_delay:  # stopped before the switch: store the grid under the preset's lambdas
+        start_grid_smoothing()
     checkpoint(avatar_path, iteration, wall_before + time.perf_counter() - started)
     _plot_log(output_dir / "train_log.png", rows)
     state_path.unlink(missing_ok=True)

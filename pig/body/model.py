@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from .npz import read_npz
-from .rotation import axis_angle_to_matrix
+from .rotation import axis_angle_to_matrix, small_matmul, small_matvec
 # SMPLX_PARENTS and SMPLX_JOINT_NAMES: part of this module's interface, as its importers use them.
 from .skeleton import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, SMPLX_JOINT_NAMES, SMPLX_PARENTS  # noqa: F401
 
@@ -93,10 +93,18 @@ class BodyModel(nn.Module):
         self.register_buffer("posedirs", torch.from_numpy(posedirs.reshape(num_vertices * 3, -1).T.copy()))
         self.register_buffer("j_regressor", torch.from_numpy(j_regressor))
         self.register_buffer("weights", torch.from_numpy(weights))
-        self.parents = parents.tolist()
         # A device tensor, not a list: indexing with a list copies it to the device on every call, which a
         # CUDA graph cannot capture (pig.avatar.driver's frame graph).
         self.register_buffer("parent_index", torch.from_numpy(parents[1:].copy()), persistent=False)
+        # The rigid chain one tree depth at a time: ~10 batched products instead of 54 sequential ones.
+        depth = np.zeros(NUM_JOINTS, dtype=np.int64)
+        for j in range(1, NUM_JOINTS):
+            depth[j] = depth[parents[j]] + 1
+        self.chain_depth = int(depth.max())
+        for d in range(1, self.chain_depth + 1):
+            joints = np.flatnonzero(depth == d)
+            self.register_buffer(f"chain_joints{d}", torch.from_numpy(joints), persistent=False)
+            self.register_buffer(f"chain_parents{d}", torch.from_numpy(parents[joints]), persistent=False)
         hands_mean = np.zeros((NUM_JOINTS, 3))
         for key, part in zip(HAND_MEAN_KEYS, (LEFT_HAND, RIGHT_HAND)):
             if key in arrays:
@@ -161,17 +169,17 @@ class BodyModel(nn.Module):
         local[..., :3, :3] = rotations
         local[..., :3, 3] = rel_joints
         local[..., 3, 3] = 1
-        chain = [local[:, 0]]
-        for j in range(1, NUM_JOINTS):
-            chain.append(chain[self.parents[j]] @ local[:, j])
-        world = torch.stack(chain, dim=1)
+        world = local
+        for d in range(1, self.chain_depth + 1):
+            joints = getattr(self, f"chain_joints{d}")
+            world = world.index_copy(1, joints, small_matmul(world[:, getattr(self, f"chain_parents{d}")], local[:, joints]))
         posed_joints = world[..., :3, 3]
         # A_j: same rotation, translation t_j - R_j J_j, so it acts on rest-pose coordinates.
         transforms = world.clone()
-        transforms[..., :3, 3] = posed_joints - (world[..., :3, :3] @ joints_rest[..., None])[..., 0]
+        transforms[..., :3, 3] = posed_joints - small_matvec(world[..., :3, :3], joints_rest)
 
         per_vertex = torch.einsum("vj,bjrc->bvrc", self.weights, transforms)
-        vertices = (per_vertex[..., :3, :3] @ blended[..., None])[..., 0] + per_vertex[..., :3, 3]
+        vertices = small_matvec(per_vertex[..., :3, :3], blended) + per_vertex[..., :3, 3]
         if transl is not None:
             offset = transl.to(dtype).reshape(-1, 1, 3)
             vertices = vertices + offset

@@ -8,6 +8,24 @@ from __future__ import annotations
 import torch
 
 
+def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a @ b for batches of small matrices (..., m, k) @ (..., k, n).
+
+    Under torch.compile, a broadcast product summed over k: batched GEMM launches a cuBLAS kernel that the compiler
+    cannot fuse, ~90 us for 100k 3 x 3 products on an H100 inside the real-time frame (benchmarks/NOTES.md,
+    Renderer). Eagerly `@` stays: the broadcast form's autograd is 2.5-4x slower on the CPU."""
+    if torch.compiler.is_compiling():
+        return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
+    return a @ b
+
+
+def small_matvec(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """a @ v for batches of small matrices (..., m, k) and vectors (..., k) -> (..., m); see small_matmul."""
+    if torch.compiler.is_compiling():
+        return (a * v[..., None, :]).sum(-1)
+    return (a @ v[..., None])[..., 0]
+
+
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula for (..., 3) axis-angle vectors -> (..., 3, 3) rotation matrices."""
     angle_sq = (axis_angle * axis_angle).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
@@ -21,7 +39,7 @@ def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     zero = torch.zeros_like(x)
     skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(axis_angle.shape[:-1] + (3, 3))
     eye = torch.eye(3, dtype=axis_angle.dtype, device=axis_angle.device).expand_as(skew)
-    return eye + sin_c * skew + cos_c * (skew @ skew)
+    return eye + sin_c * skew + cos_c * small_matmul(skew, skew)
 
 
 def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
@@ -97,7 +115,7 @@ def geodesic_distance(r1: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     Uses atan2 of the skew and trace parts, which stays accurate near 0 and near 180 degrees
     (acos of the trace loses half the digits at both ends).
     """
-    rel = r1.transpose(-1, -2) @ r2
+    rel = small_matmul(r1.transpose(-1, -2), r2)
     trace = rel[..., 0, 0] + rel[..., 1, 1] + rel[..., 2, 2]
     skew = torch.stack([rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0], rel[..., 1, 0] - rel[..., 0, 1]], -1)
     return torch.atan2(skew.norm(dim=-1), trace - 1)

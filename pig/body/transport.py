@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import torch
 
+from .rotation import small_matmul, small_matvec
+
 
 def barycentric_points(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
     """Surface points from fixed attachments: (B, V, 3) vertices -> (B, N, 3)."""
@@ -92,7 +94,7 @@ def surface_frames(vertices: torch.Tensor, faces: torch.Tensor, face_ids: torch.
 
 def transport_rotation(posed_frames: torch.Tensor, canonical_frames: torch.Tensor) -> torch.Tensor:
     """Eq. 2: R = F_posed F_canon^T; (B, N, 3, 3) and (N, 3, 3) -> (B, N, 3, 3), proper rotations."""
-    return posed_frames @ canonical_frames.transpose(-1, -2)
+    return small_matmul(posed_frames, canonical_frames.transpose(-1, -2))
 
 
 def transport_points(
@@ -100,4 +102,4 @@ def transport_points(
 ) -> torch.Tensor:
     """Eq. 3: x(theta) = x_init(theta) + R (x - x_init); anchors, x_init (N, 3), posed_init (B, N, 3)."""
     offset = (anchors - x_init).to(rotation.dtype)
-    return posed_init + (rotation @ offset[None, :, :, None])[..., 0]
+    return posed_init + small_matvec(rotation, offset[None])

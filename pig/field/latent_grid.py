@@ -101,6 +101,23 @@ class LatentGrid(nn.Module):
             generator=generator,
         )
 
+    @torch.no_grad()
+    def set_lambdas(self, lambdas: list[float], keep_values: bool = True) -> None:
+        """Smooth level g's updates by (I + lambdas[g] L_g) from now on (forms "substitute" and "filter").
+
+        `keep_values`: every level keeps its current x (the substitution form re-bases: origin = x, u = 0).
+        Without it the stored parameters keep their meaning under the new systems, as a state dict written
+        under them needs."""
+        if len(lambdas) != len(self.levels):
+            raise ValueError(f"LatentGrid: expected {len(self.levels)} lambdas, found {lambdas}")
+        for level, res, lam in zip(self.levels, self.resolutions, lambdas):
+            if level.form == "none":
+                raise ValueError("LatentGrid: a grid without preconditioning (form 'none') has no lambdas to set")
+            value = level().detach() if keep_values else None
+            level.system = LatticeSystem((res, res, res), lam, level.system.method)
+            if value is not None:
+                level.set_value(value)
+
     def volumes(self) -> list[torch.Tensor]:
         """The current level tensors x_g (d, R, R, R), differentiable (runs the substitution solves)."""
         return [level() for level in self.levels]

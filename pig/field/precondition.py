@@ -34,6 +34,8 @@ from typing import Literal, Protocol
 import torch
 from torch import nn
 
+from pig.config import ConfigError
+
 from .knn_graph import knn_laplacian
 from .knn_solve import CGSystem, FactorizedSystem
 
@@ -67,6 +69,15 @@ class PrecondConfig:
     cg_check_every: int = 1  # CG tests its residual (a host synchronisation) every this many iterations
     cg_compile: bool = False  # CG iterations compiled with torch.compile (speed lever, pig/field/knn_solve.py)
     cg_graphs: bool = False  # on CUDA, each block of cg_check_every iterations replayed as one CUDA graph (speed lever)
+    # Iterations before the grid's Sobolev preconditioning starts (0: from the first, as the paper). Until then the
+    # grid levels take plain steps (lambda 0), so features local to the loose garment form early; at the switch each
+    # level keeps its values and its optimiser state restarts (pig.avatar.training). The anchors are not delayed;
+    # form 'none' has nothing to delay.
+    grid_delay: int = 0
+
+    def __post_init__(self):
+        if self.grid_delay < 0:
+            raise ConfigError(f"precond.grid_delay must be at least 0, found {self.grid_delay}")
 
     def grid_lrs(self, levels: int) -> list[float]:
         return [self.grid_lr * self.grid_lr_growth**g for g in range(levels)]
