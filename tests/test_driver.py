@@ -1,17 +1,13 @@
 """Pose-driven fast path (pig.avatar.driver): the model's Gaussians, with per-avatar work done once."""
-from dataclasses import asdict
 
 import numpy as np
 import pytest
 import torch
 
-from pig.avatar.build import build_avatar
-from pig.avatar.config import AvatarConfig
 from pig.avatar.driver import AvatarDriver
 from pig.body.params import SmplxParams
-from pig.field.latent_grid import FieldConfig
-from pig.field.precondition import PrecondConfig
 from pig.field.precondition import bake_preconditioning
+from avatar_fixture import small_avatar
 
 
 @pytest.fixture(scope="module")
@@ -25,16 +21,10 @@ def standin(tmp_path_factory):
 
 def _avatar(standin, refine=True):
     """A small avatar as a fit leaves it: non-zero grid, moved anchors, decoders and refiner far from zero."""
-    t = 3
     rng = np.random.default_rng(0)
-    pose = rng.normal(scale=0.2, size=(t, 55, 3))
-    params = SmplxParams(pose, np.zeros(10), np.zeros((t, 10)), rng.normal(scale=0.1, size=(t, 3)))
-    cfg = AvatarConfig(num_anchors=600, levels=3, sh_degree=1, hidden_layers=2, hidden_width=32, output_init_gain=0.1,
-                       refine_shape=refine, refine_body=refine, refine_face=refine, refine_hands=refine)
-    spec = dict(avatar=asdict(cfg), field=asdict(FieldConfig(resolutions=[4, 6], features=4)), precond=asdict(PrecondConfig()),
-                body_model_npz=standin, params=asdict(params), frame_ids=[10, 11, 12], variant="pig")
-    torch.manual_seed(0)
-    model = build_avatar(spec)
+    pose = rng.normal(scale=0.2, size=(3, 55, 3))
+    params = SmplxParams(pose, np.zeros(10), np.zeros((3, 10)), rng.normal(scale=0.1, size=(3, 3)))
+    model = small_avatar(standin, params, refine, num_anchors=600, levels=3, sh_degree=1, hidden_layers=2, hidden_width=32)
     with torch.no_grad():
         for level in model.grid.levels:
             level.set_value(torch.randn_like(level()))

@@ -15,6 +15,7 @@ from pig.body.params import SmplxParams
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.render.api import render_gaussians
+from avatar_fixture import small_avatar
 
 
 def test_boundary_band_matches_opencv_dilate_minus_erode(rng):
@@ -54,16 +55,11 @@ def standin(tmp_path_factory):
 
 
 def _small_model(standin, refine=True, **avatar):
-    t = 3
     rng = np.random.default_rng(0)
-    pose = rng.normal(scale=0.2, size=(t, 55, 3))
-    params = SmplxParams(pose, np.zeros(10), np.zeros((t, 10)), np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], float))
-    cfg = AvatarConfig(num_anchors=600, levels=3, sh_degree=1, hidden_layers=2, hidden_width=32, output_init_gain=0.1,
-                       refine_shape=refine, refine_body=refine, refine_face=refine, refine_hands=refine, **avatar)
-    spec = dict(avatar=asdict(cfg), field=asdict(FieldConfig(resolutions=[4, 6], features=4)), precond=asdict(PrecondConfig()),
-                body_model_npz=standin, params=asdict(params), frame_ids=[10, 11, 12], variant="pig")
-    torch.manual_seed(0)
-    return build_avatar(spec)
+    pose = rng.normal(scale=0.2, size=(3, 55, 3))
+    params = SmplxParams(pose, np.zeros(10), np.zeros((3, 10)), np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], float))
+    return small_avatar(standin, params, refine, num_anchors=600, levels=3, sh_degree=1, hidden_layers=2, hidden_width=32,
+                        **avatar)
 
 
 def _camera():

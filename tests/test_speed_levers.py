@@ -6,7 +6,6 @@ import math
 import time
 import warnings
 from contextlib import nullcontext
-from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -15,20 +14,19 @@ import yaml
 from torch._dynamo.utils import counters
 
 from pig.avatar.batches import TrainingBatch, ViewBatch
-from pig.avatar.build import build_avatar, build_optimizers
+from pig.avatar.build import build_optimizers
 from pig.avatar.checkpoint import load_avatar
-from pig.avatar.config import AvatarConfig
 from pig.avatar.decoders import AnchorDecoder
 from pig.avatar.training import FitConfig, LossTerms, iteration_loss, lr_factor
 from pig.body.params import SmplxParams
 from pig.config import ConfigError, load_preset, load_section
 from pig.field.knn_graph import knn_laplacian
 from pig.field.knn_solve import CGNotConverged, CGSystem
-from pig.field.latent_grid import FieldConfig
 from pig.field.optim import Adam
 from pig.field.precondition import PrecondConfig
 from pig.metrics.ssim import ssim, ssim_map
 from pig.render.api import RenderError, render_gaussians, render_timesteps
+from avatar_fixture import small_avatar
 
 HEADS = ("offset", "rotation", "scale", "opacity", "sh")
 
@@ -272,11 +270,7 @@ def _model(standin: bytes):
     """A small avatar of 3 timesteps with learnt anchors and a body refiner: every optimiser group."""
     rng = np.random.default_rng(0)
     params = SmplxParams(rng.normal(scale=0.2, size=(3, 55, 3)), np.zeros(10), np.zeros((3, 10)), np.zeros((3, 3)))
-    cfg = AvatarConfig(num_anchors=400, levels=2, sh_degree=1, hidden_layers=2, hidden_width=32, output_init_gain=0.1)
-    spec = dict(avatar=asdict(cfg), field=asdict(FieldConfig(resolutions=[4, 6], features=4)), precond=asdict(PrecondConfig()),
-                body_model_npz=standin, params=asdict(params), frame_ids=[10, 11, 12], variant="pig")
-    torch.manual_seed(0)
-    return build_avatar(spec)
+    return small_avatar(standin, params, num_anchors=400, levels=2, sh_degree=1, hidden_layers=2, hidden_width=32)
 
 
 @pytest.fixture(scope="module")

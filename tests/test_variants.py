@@ -3,7 +3,6 @@
 Each is a row of every preset's `variants:` section, builds from its overrides and trains for a few iterations.
 """
 import math
-from dataclasses import asdict
 
 import numpy as np
 import pandas as pd
@@ -11,7 +10,6 @@ import pytest
 import torch
 import yaml
 
-from pig.avatar.build import build_avatar
 from pig.avatar.checkpoint import load_avatar
 from pig.avatar.config import AvatarConfig
 from pig.avatar.driver import AvatarDriver
@@ -20,8 +18,7 @@ from pig.body.params import SmplxParams
 from pig.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from pig.body.transport import barycentric_points
 from pig.config import ConfigError, from_dict, load_preset, load_section
-from pig.field.latent_grid import FieldConfig
-from pig.field.precondition import PrecondConfig
+from avatar_fixture import small_avatar
 
 NEW_VARIANTS = ("template_bound", "local_offsets", "lod_1of1")
 
@@ -40,12 +37,8 @@ def _model(standin, refine: bool, **avatar):
     rng = np.random.default_rng(0)
     pose = rng.normal(scale=0.2, size=(3, 55, 3))
     params = SmplxParams(pose, np.zeros(10), np.zeros((3, 10)), np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], float))
-    cfg = AvatarConfig(num_anchors=400, levels=2, sh_degree=0, hidden_layers=1, hidden_width=16, output_init_gain=0.1,
-                       refine_shape=refine, refine_body=refine, refine_face=refine, refine_hands=refine, **avatar)
-    spec = dict(avatar=asdict(cfg), field=asdict(FieldConfig(resolutions=[4, 6], features=4)), precond=asdict(PrecondConfig()),
-                body_model_npz=standin, params=asdict(params), frame_ids=[10, 11, 12], variant="pig")
-    torch.manual_seed(0)
-    return build_avatar(spec)
+    return small_avatar(standin, params, refine, num_anchors=400, levels=2, sh_degree=0, hidden_layers=1, hidden_width=16,
+                        **avatar)
 
 
 def _posed_template(model, steps: torch.Tensor, lod: int, poses=None) -> torch.Tensor:
