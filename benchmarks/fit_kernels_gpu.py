@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from pig.avatar.decoders import AnchorDecoder
+from pig.avatar.losses import boundary_band
 from pig.field.knn_graph import knn_laplacian
 from pig.field.knn_solve import CGSystem
 from pig.field.optim import Adam
@@ -206,17 +207,36 @@ def lpips_term(args) -> None:
     timed("lpips vgg", "4 images bf16 channels-last", step(True, True), 1, max(3, args.repeats // 4))
 
 
+
+def bands(args) -> None:
+    """The silhouette band of a batch's 20 masks at 1330 x 1150 (radius 3): one (2r+1)^2 max-pool per side (the
+    code before run18) against pig's column-then-row passes."""
+    masks = torch.rand(20, 1150, 1330, device="cuda") > 0.5
+
+    def square(mask, radius=3):
+        m = mask[:, None].float()
+        size = 2 * radius + 1
+        dilated = F.max_pool2d(m, size, stride=1, padding=radius) > 0.5
+        eroded = -F.max_pool2d(-m, size, stride=1, padding=radius) > 0.5
+        return (dilated & ~eroded)[:, 0]
+
+    same = bool(torch.equal(square(masks), boundary_band(masks, 3)))
+    timed("band", "square window max-pool", lambda: square(masks), args.warmup, args.repeats)
+    timed("band", "column + row max-pool (pig)", lambda: boundary_band(masks, 3), args.warmup, args.repeats,
+          "equal" if same else "DIFFERS")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--only", nargs="*", default=["decoders", "ssim", "cg", "gsplat", "adam", "lpips"])
+    parser.add_argument("--only", nargs="*", default=["decoders", "ssim", "cg", "gsplat", "adam", "lpips", "band"])
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("fit_kernels_gpu: no CUDA device", file=sys.stderr)
         return 1
     print(f"device {torch.cuda.get_device_name()}, torch {torch.__version__}")
-    parts = {"decoders": decoders, "ssim": ssims, "cg": cg, "gsplat": gsplat_calls, "adam": adams, "lpips": lpips_term}
+    parts = {"decoders": decoders, "ssim": ssims, "cg": cg, "gsplat": gsplat_calls, "adam": adams, "lpips": lpips_term, "band": bands}
     for name in args.only:
         parts[name](args)
     print("\n| part | alternative | ms fwd+bwd (median) | note |\n|---|---|---|---|")

@@ -9,7 +9,8 @@ plus noise, so the nearest timestep changes):
 - raster alone: the rasterizer on pre-computed splats of the same frames (for "same timestep": of those frames);
 - real time: AvatarDriver(frame_graph=True).posed_frame (every timestep decoded once per LOD; on CUDA the frame
   is one compiled CUDA graph: pose -> nearest timestep -> body -> transport -> gather -> splats) + raster, against
-  raster alone on its splats, and its image's mean absolute difference from the old path's (second table).
+  raster alone on its splats (the three timed in turn for each pose, so that clock drift weighs on each alike),
+  and its image's mean absolute difference from the old path's (second table).
 The device is synchronised around every timed call. Without --checkpoint the avatar is built from the
 preset's sizes without a fit (the stand-in body, --timesteps random training poses): its decoders are
 untrained, so the splats are random-ish and only the timings mean anything.
@@ -95,6 +96,21 @@ def median_ms(run, count: int, device: torch.device) -> float:
         if i:
             times.append(time.perf_counter() - start)
     return 1e3 * statistics.median(times)
+
+
+def interleaved_median_ms(runs, count: int, device: torch.device) -> list[float]:
+    """Median wall time [ms] of each run(i), the runs taken in turn for each i = 1..count (after i = 0 as
+    warm-up), so that a drift of the clocks over the measurement weighs on all of them alike."""
+    times = [[] for _ in runs]
+    for i in range(count + 1):
+        for run, kept in zip(runs, times):
+            sync(device)
+            start = time.perf_counter()
+            run(i)
+            sync(device)
+            if i:
+                kept.append(time.perf_counter() - start)
+    return [1e3 * statistics.median(t) for t in times]
 
 
 PARTS = ("nearest", "body", "transport", "decoders", "assemble", "raster")
@@ -270,10 +286,10 @@ def real_time_table(model, poses, rows, transl, raster, repeats: int, device: to
         driver.posed_frame(lod, poses[0], transl)
         sync(device)
         setup_s = time.perf_counter() - start
-        frame_ms = median_ms(lambda i: raster(driver.posed_frame(lod, poses[i], transl)[0]), repeats, device)
-        splats_ms = median_ms(lambda i: driver.posed_frame(lod, poses[i], transl), repeats, device)
         kept = [[x.clone() for x in driver.posed_frame(lod, p, transl)[0]] for p in poses]
-        alone_ms = median_ms(lambda i: raster(kept[i]), repeats, device)
+        frame_ms, splats_ms, alone_ms = interleaved_median_ms(
+            [lambda i: raster(driver.posed_frame(lod, poses[i], transl)[0]), lambda i: driver.posed_frame(lod, poses[i], transl),
+             lambda i: raster(kept[i])], repeats, device)
         differences = []
         for i in range(min(repeats + 1, 5)):
             t = model.nearest_timestep(poses[i])

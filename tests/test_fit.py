@@ -19,14 +19,20 @@ from avatar_fixture import small_avatar
 
 
 def test_boundary_band_matches_opencv_dilate_minus_erode(rng):
-    mask = np.zeros((2, 40, 50), np.uint8)
+    mask = np.zeros((4, 40, 50), np.uint8)
     mask[0, 10:30, 5:20] = 1
     mask[1] = rng.random((40, 50)) > 0.6
-    for r in (1, 3):
-        kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-        # OpenCV's default border for dilate/erode leaves the outside out of both operations.
-        expected = np.stack([cv2.dilate(m, kernel).astype(bool) & ~cv2.erode(m, kernel, borderType=cv2.BORDER_REPLICATE).astype(bool) for m in mask])
-        np.testing.assert_array_equal(boundary_band(torch.tensor(mask, dtype=torch.bool), r).numpy(), expected)
+    mask[3] = 1  # [2] empty: no band; [3] full: no band either (the outside is left out)
+    tiny = (rng.random((2, 2, 3)) > 0.5).astype(np.uint8)  # smaller than the window
+    for masks in (mask, tiny):
+        for r in (1, 3, 5):
+            kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+            # OpenCV's default border for dilate/erode leaves the outside out of both operations.
+            expected = np.stack([cv2.dilate(m, kernel).astype(bool) & ~cv2.erode(m, kernel, borderType=cv2.BORDER_REPLICATE).astype(bool)
+                                 for m in masks])
+            np.testing.assert_array_equal(boundary_band(torch.tensor(masks, dtype=torch.bool), r).numpy(), expected)
+    assert not boundary_band(torch.tensor(mask, dtype=torch.bool), 0).any()
+    assert not boundary_band(torch.tensor(mask[2:], dtype=torch.bool), 3).any()
     assert band_radius(1150, 3.0, 1150) == 3 and band_radius(256, 3.0, 1150) == 1 and band_radius(64, 3.0, 1150) == 0
 
 

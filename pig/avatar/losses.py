@@ -72,10 +72,17 @@ def boundary_band(mask: torch.Tensor, radius: int) -> torch.Tensor:
     if radius <= 0:
         return torch.zeros_like(mask)
     m = mask[:, None].float()
-    size = 2 * radius + 1
-    dilated = F.max_pool2d(m, size, stride=1, padding=radius) > 0.5
-    eroded = -F.max_pool2d(-m, size, stride=1, padding=radius) > 0.5
+    dilated = _square_max(m, radius) > 0.5
+    eroded = -_square_max(-m, radius) > 0.5
     return (dilated & ~eroded)[:, 0]
+
+
+def _square_max(m: torch.Tensor, radius: int) -> torch.Tensor:
+    """Max over the (2r+1)^2 window of each pixel of (B, 1, H, W), as a column pass then a row pass: the same
+    maximum from 2(2r+1) reads a pixel instead of (2r+1)^2 (2 of the paper profile's ~70 ms a step at r = 3)."""
+    size = 2 * radius + 1
+    columns = F.max_pool2d(m, (size, 1), stride=1, padding=(radius, 0))
+    return F.max_pool2d(columns, (1, size), stride=1, padding=(0, radius))
 
 
 def apply_band(images: torch.Tensor, band: torch.Tensor, background: torch.Tensor) -> torch.Tensor:

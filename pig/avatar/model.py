@@ -79,6 +79,7 @@ class AvatarModel(nn.Module):
         num_betas = len(params.betas) if cfg.refine_shape else 0
         self.refiner = BodyRefiner(features + 2 * num_frequencies(self.num_timesteps), cfg.refine_hidden_width,
                                    cfg.refine_hidden_layers, num_betas, joints, cfg.output_init_gain)
+        self._compiled_posing = None  # `_posed_splats_sync_free` compiled by compile_posing
 
     @property
     def num_levels(self) -> int:
@@ -112,9 +113,29 @@ class AvatarModel(nn.Module):
         if poses is not None:
             pose = poses.to(pose)
         translation = self.transl[timesteps] if transl is None else transl.to(self.transl)
-        body = self.body_model(pose, betas, self.expression[timesteps], translation)
-        centres, rotation = self.transport(x, body.vertices, lod)
-        return self.splats(centres, rotation, self.decode(z, timesteps, lod))
+        decoded = self.decode(z, timesteps, lod)
+        # The compiled region serves training steps only: evaluations (no grad) vary K and would recompile it.
+        posing = self._compiled_posing if self._compiled_posing is not None and torch.is_grad_enabled() else self.posed_splats
+        return posing(x, lod, pose, betas, self.expression[timesteps], translation, decoded)
+
+    def posed_splats(self, x: torch.Tensor, lod: int, pose: torch.Tensor, betas: torch.Tensor, expression: torch.Tensor,
+                     translation: torch.Tensor, decoded: DecodedAnchors, sync_free: bool = False) -> Gaussians:
+        """Eqs. 2-3 and 10-11: the body in `pose` (K, 55, 3), the level's anchors among canonical `x` (N, 3)
+        transported onto it, and the splats of their `decoded` attributes."""
+        body = self.body_model(pose, betas, expression, translation)
+        centres, rotation = self.transport(x, body.vertices, lod, sync_free)
+        return self.splats(centres, rotation, decoded)
+
+    def _posed_splats_sync_free(self, *args) -> Gaussians:
+        return self.posed_splats(*args, sync_free=True)
+
+    def compile_posing(self) -> None:
+        """Training steps run `posed_splats` through torch.compile: the body's rigid chain and the transport's
+        3 x 3 products fuse into a few kernels (pig.body.rotation.small_matmul), forward and backward. It runs
+        sync-free (the same frames, pig.body.transport.surface_frames), so the step has no host synchronisation
+        there; one static graph per LOD."""
+        if self._compiled_posing is None:
+            self._compiled_posing = torch.compile(self._posed_splats_sync_free, dynamic=False)
 
     def anchor_features(self, x: torch.Tensor, lod: int) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Grid features z (n, d) of the level's anchors among canonical anchors `x` (N, 3), and the refiner's

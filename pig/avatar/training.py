@@ -7,6 +7,7 @@ Eq. 15 per iteration on one random LOD, V views x K timesteps, with the per-grou
 Speed levers (preset section `fit`, each off in the CPU presets; benchmarks/NOTES.md, "Fit", measures each):
 `precision` (decoders in TF32 or bf16 autocast, float32 master weights), `compile` (torch.compile of the
 decoder MLPs and of the L1 + SSIM loss, with SSIM's blur as shifted sums that compile into one kernel),
+`compile_posing` (torch.compile of the body model, transport and splat assembly of a training step),
 `batched_render` (one rasterizer call and one loss evaluation for all timesteps and views), `fused_adam`
 (torch's fused Adam kernels instead of a loop over tensors), `log_every` (loss terms read back to the host
 every N iterations, not every one). The KNN solve's host synchronisations are `precond.cg_check_every`.
@@ -100,6 +101,7 @@ class FitConfig:
     # Speed levers (module docstring).
     precision: Literal["float32", "tf32", "bf16"] = "float32"
     compile: bool = False
+    compile_posing: bool = False
     batched_render: bool = False
     fused_adam: bool = False
     log_every: int = 1
@@ -320,6 +322,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     torch.manual_seed(fit_cfg.seed)
     model = build_avatar(spec).to(device)
     model.decoder.set_precision(fit_cfg.precision, compiled=fit_cfg.compile)
+    if fit_cfg.compile_posing:
+        model.compile_posing()
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg, fused=fit_cfg.fused_adam)
     base_lrs = [[group["lr"] for group in opt.param_groups] for opt in optimizers]  # the schedule scales these
     generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
