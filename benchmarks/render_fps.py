@@ -87,15 +87,7 @@ def sync(device: torch.device) -> None:
 
 def median_ms(run, count: int, device: torch.device) -> float:
     """Median wall time [ms] of run(i) for i = 1..count, after run(0) as warm-up."""
-    times = []
-    for i in range(count + 1):
-        sync(device)
-        start = time.perf_counter()
-        run(i)
-        sync(device)
-        if i:
-            times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
+    return interleaved_median_ms([run], count, device)[0]
 
 
 def interleaved_median_ms(runs, count: int, device: torch.device) -> list[float]:
