@@ -207,7 +207,6 @@ def lpips_term(args) -> None:
     timed("lpips vgg", "4 images bf16 channels-last", step(True, True), 1, max(3, args.repeats // 4))
 
 
-
 def bands(args) -> None:
     """The silhouette band of a batch's 20 masks at 1330 x 1150 (radius 3): one (2r+1)^2 max-pool per side (the
     code before run18) against pig's column-then-row passes."""

@@ -180,10 +180,9 @@ class AvatarDriver:
         step = geodesic_distance(query[None], train_rotations).sum(-1).argmin()[None]  # ties -> earliest
         betas, _ = self.refined()
         translation = model.transl[step] if transl is None else transl
-        vertices = model.body_model(pose[None], betas, model.expression[step], translation).vertices
-        centres, rotation = model.transport(self.anchors(), vertices, lod, sync_free=True)
         decoded = DecodedAnchors(*(getattr(decoded_all, f.name)[step] for f in fields(DecodedAnchors)))
-        g = self.splats(centres, rotation, decoded)
+        g = model.posed_splats(self.anchors(), lod, pose[None], betas, model.expression[step], translation, decoded,
+                               sync_free=True)
         return g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], step
 
     @torch.no_grad()
