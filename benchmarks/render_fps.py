@@ -19,6 +19,7 @@ untrained, so the splats are random-ish and only the timings mean anything.
     python benchmarks/render_fps.py --device cuda --checkpoint avatar.pt --precision bf16
     python benchmarks/render_fps.py --device cpu --anchors 4000 --width 160 --height 140 --repeats 3
     python benchmarks/render_fps.py --device cuda --precision bf16 --profile-frame 20   # + where a frame's time goes
+    python benchmarks/render_fps.py --device cuda --precision bf16 --real-time-only --floor  # + the raster's settings
 """
 from __future__ import annotations
 
@@ -126,6 +127,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="after the real-time table: N frames of each LOD under torch.profiler, the graph's kernels "
                              "and the eager frame's operators by device time")
     parser.add_argument("--op-rows", type=int, default=15, help="rows of each --profile-frame table")
+    parser.add_argument("--floor", action="store_true",
+                        help="after the real-time table: gsplat's raster of the same splats under other settings "
+                             "(packed, tile size, RGB only, opacity culling), CUDA only")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -168,6 +172,8 @@ def main(argv: list[str] | None = None) -> int:
             driver = real_time_table(model, poses, rows, transl, raster, args.repeats, device)
             if args.profile_frame:
                 profile_frames(driver, poses, transl, args.profile_frame, args.op_rows, device)
+            if args.floor and device.type == "cuda":
+                floor_table(driver, poses, transl, (viewmat, K, args.width, args.height), args.repeats, device)
         return 0
     header = (f"| LOD | splats | old | fast | fast FPS | {' | '.join(PARTS)} | raster alone | fast / raster | "
               f"same-t fast | same-t / raster | old / fast |")
@@ -259,6 +265,59 @@ def profile_frames(driver: AvatarDriver, poses, transl, count: int, rows: int, d
             print(f"\nLOD {lod} {label}, {count} frames: {launched:.0f} kernels and {kernel_us / 1e3:.3f} ms of kernel time "
                   f"per frame")
             print(events.table(sort_by=sort, row_limit=rows, max_name_column_width=60))
+
+
+FLOOR_VARIANTS = {  # name: (gsplat.rasterization keywords over the render stage's, drop splats below 1/255 opacity)
+    "as rendered (unpacked, tile 16, RGB+ED)": ({}, False),
+    "packed": ({"packed": True}, False),
+    "tile 8": ({"tile_size": 8}, False),
+    "tile 32": ({"tile_size": 32}, False),
+    "RGB only": ({"render_mode": "RGB"}, False),
+    "opacity >= 1/255 only": ({}, True),
+}
+
+
+def floor_table(driver: AvatarDriver, poses, transl, camera, repeats: int, device: torch.device) -> None:
+    """Where the raster floor itself can drop: gsplat on each LOD's real-time splats under the settings of
+    FLOOR_VARIANTS, timed in turn per pose, with each image's mean absolute difference from the render stage's."""
+    from gsplat import rasterization
+
+    from pig.render.projection import EPS2D, FAR_PLANE, NEAR_PLANE
+
+    viewmat, K, width, height = camera
+    # No `backgrounds`: the benchmark's is black, which adds nothing, and gsplat 1.5.3's packed path rejects one.
+    base = dict(near_plane=NEAR_PLANE, far_plane=FAR_PLANE, eps2d=EPS2D, packed=False, render_mode="RGB+ED",
+                rasterize_mode="classic")
+
+    def raster(splats, options, cull):
+        means, quats, scales, opacities, sh = splats
+        if cull:  # selected outside the timed call would hide its cost; inside it costs a host sync
+            keep = opacities >= 1 / 255
+            means, quats, scales, opacities, sh = (x[keep] for x in splats)
+        degree = round(sh.shape[1] ** 0.5) - 1
+        image, _, _ = rasterization(means, quats, scales, opacities, sh, viewmat, K, width, height,
+                                    sh_degree=degree, **{**base, **options})
+        return image[0, ..., :3]
+
+    print(f"\nRaster floor: gsplat on the real-time frame's splats, median of {repeats} frames [ms]; ratio and image "
+          f"MAD against the render stage's settings")
+    names = list(FLOOR_VARIANTS)
+    header = "| LOD | splats | kept at 1/255 | " + " | ".join(names) + " |"
+    print(header + "\n|" + "---|" * (header.count("|") - 1))
+    for lod in range(driver.model.num_levels):
+        if not driver.frame_graph_fits(lod):
+            continue
+        kept = [[x.clone() for x in driver.posed_frame(lod, p, transl)[0]] for p in poses]
+        runs = [lambda i, v=FLOOR_VARIANTS[name]: raster(kept[i], *v) for name in names]
+        times = interleaved_median_ms(runs, repeats, device)
+        reference = raster(kept[0], *FLOOR_VARIANTS[names[0]])
+        cells = []
+        for name, ms in zip(names, times):
+            mad = float((raster(kept[0], *FLOOR_VARIANTS[name]) - reference).abs().mean())
+            cells.append(f"{ms:.3f} ({ms / times[0]:.2f}x, {mad:.1e})")
+        fraction = float((kept[0][3] >= 1 / 255).float().mean())
+        print(f"| {lod} | {driver.model.level_sizes[lod]} | {fraction:.3f} | " + " | ".join(cells) + " |", flush=True)
+        del kept
 
 
 def real_time_table(model, poses, rows, transl, raster, repeats: int, device: torch.device) -> AvatarDriver:

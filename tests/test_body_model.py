@@ -97,6 +97,24 @@ def test_random_model_matches_reference(rng, shape_columns):
         np.testing.assert_allclose(out.joints[b].numpy(), joints, atol=1e-10)
 
 
+def test_precomputed_rest_shape_poses_like_betas_and_expression(rng):
+    """`rest`: the shaped rest body computed once (the real-time frame's per-timestep cache) and posed later gives
+    the float64 reference, and exactly what betas and expression give in the same call."""
+    arrays = random_model_arrays(rng, shape_columns=400)
+    model = BodyModel(arrays, dtype=torch.float64)
+    pose, betas, expression, transl = random_pose(rng, 3), rng.normal(size=10), rng.normal(size=(3, 10)), rng.normal(size=(3, 3))
+    shaped, joints_rest = model.rest_shape(3, torch.tensor(betas), torch.tensor(expression))
+    assert shaped.shape == (3, 40, 3) and joints_rest.shape == (3, NUM_JOINTS, 3)
+    direct = run(model, pose, betas, expression, transl)
+    cached = model(torch.tensor(pose), transl=torch.tensor(transl), rest=(shaped, joints_rest))
+    for name in ("vertices", "joints", "transforms", "shaped_vertices"):
+        assert torch.equal(getattr(cached, name), getattr(direct, name)), name
+    for b in range(3):
+        verts, joints = reference_lbs(arrays, pose[b], betas, expression[b], transl[b])
+        np.testing.assert_allclose(cached.vertices[b].numpy(), verts, atol=1e-10)
+        np.testing.assert_allclose(cached.joints[b].numpy(), joints, atol=1e-10)
+
+
 def test_compiled_model_matches_reference(rng):
     """Under torch.compile the chain's and skinning's small products are broadcast sums (pig.body.rotation.small_matmul),
     not the eager `@`: the compiled model meets the reference as the eager one does, 180-degree joints included."""

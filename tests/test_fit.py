@@ -10,7 +10,7 @@ import yaml
 from pig.avatar.build import build_avatar
 from pig.avatar.checkpoint import load_avatar
 from pig.avatar.config import AvatarConfig
-from pig.avatar.losses import band_radius, boundary_band, image_loss
+from pig.avatar.losses import band_radius, boundary_band, boundary_band_host, image_loss
 from pig.body.params import SmplxParams
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
@@ -31,7 +31,10 @@ def test_boundary_band_matches_opencv_dilate_minus_erode(rng):
             expected = np.stack([cv2.dilate(m, kernel).astype(bool) & ~cv2.erode(m, kernel, borderType=cv2.BORDER_REPLICATE).astype(bool)
                                  for m in masks])
             np.testing.assert_array_equal(boundary_band(torch.tensor(masks, dtype=torch.bool), r).numpy(), expected)
+            for m, band in zip(masks.astype(bool), expected):  # the loader threads' form (fit.host_band)
+                np.testing.assert_array_equal(boundary_band_host(m, r), band)
     assert not boundary_band(torch.tensor(mask, dtype=torch.bool), 0).any()
+    assert not boundary_band_host(mask[0].astype(bool), 0).any() and boundary_band_host(mask[0].astype(bool), 0).shape == (40, 50)
     assert not boundary_band(torch.tensor(mask[2:], dtype=torch.bool), 3).any()
     assert band_radius(1150, 3.0, 1150) == 3 and band_radius(256, 3.0, 1150) == 1 and band_radius(64, 3.0, 1150) == 0
 

@@ -17,6 +17,7 @@ from pig.avatar.batches import TrainingBatch, ViewBatch
 from pig.avatar.build import build_optimizers
 from pig.avatar.checkpoint import load_avatar
 from pig.avatar.decoders import AnchorDecoder
+from pig.avatar.losses import boundary_band, boundary_band_host
 from pig.avatar.training import FitConfig, LossTerms, iteration_loss, lr_factor
 from pig.body.params import SmplxParams
 from pig.config import ConfigError, load_preset, load_section
@@ -365,12 +366,48 @@ def test_batched_iteration_loss_equals_the_per_batch_loss(twin_avatars):
         assert (fast_grads[name] - grad).abs().max() <= 1e-6 * scale + 1e-12, name
 
 
+@pytest.mark.parametrize("batched", [True, False])
+def test_iteration_loss_with_the_loaders_bands_equals_the_devices(twin_avatars, batched):
+    """`fit.host_band`: the views carry their band (as the loader threads compute it, with OpenCV) and the loss
+    uses it instead of computing it from the masks: the same pixels, so the same terms and gradients, exactly."""
+    model = twin_avatars[0]
+    cfg = FitConfig(weight_lpips=0.0, band_radius_px=2.0, band_reference_height=16)
+    background = torch.tensor([0.2, 0.3, 0.4])
+    loss = LossTerms(cfg, background, None, compiled=False)
+    from pig.render.api import RasterizerConfig
+
+    results = []
+    for host_band in (False, True):
+        views = [[_view_batch(step, 2, 20, 16, seed)] for seed, step in enumerate((0, 2))]
+        for step_batches in views:
+            vb = step_batches[0]
+            vb.masks[0, 2:5, 1:4] = True  # a second blob near the border: the band meets the image edge
+            if host_band:
+                vb.bands = torch.from_numpy(np.stack([boundary_band_host(m.numpy(), loss.band_radius(vb.height))
+                                                      for m in vb.masks]))
+        batch = TrainingBatch(iteration=0, lod=1, timesteps=[0, 2], views=views, wait_s=0.0)
+        model.zero_grad(set_to_none=True)
+        terms = iteration_loss(model, batch, loss, RasterizerConfig(backend="cpu"), background, batched,
+                               lambda name: nullcontext())
+        terms["total"].backward()
+        results.append(([terms[k].detach() for k in ("l1", "ssim", "total")],
+                        [p.grad.clone() for p in model.parameters() if p.grad is not None]))
+    (device_terms, device_grads), (host_terms, host_grads) = results
+    assert loss.band_radius(16) == 2
+    for a, b in zip(device_terms + device_grads, host_terms + host_grads):
+        assert torch.equal(a, b)
+
+
 def test_uniform_batch_only_when_every_timestep_has_the_same_views():
     same = TrainingBatch(0, 0, [0, 1], [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 2, 8, 6, 1)]], 0.0)
-    viewmats, Ks, images, masks, width, height = same.uniform()
+    viewmats, Ks, images, masks, width, height, bands = same.uniform()
     assert viewmats.shape == (2, 2, 4, 4) and Ks.shape == (2, 2, 3, 3) and (width, height) == (8, 6)
     assert torch.equal(images, torch.cat([same.views[0][0].images, same.views[1][0].images]))
     assert torch.equal(masks, torch.cat([same.views[0][0].masks, same.views[1][0].masks]))
+    assert bands is None  # views without the loader's bands
+    for step_batches in same.views:
+        step_batches[0].bands = boundary_band(step_batches[0].masks, 1)
+    assert torch.equal(same.uniform()[-1], torch.cat([same.views[0][0].bands, same.views[1][0].bands]))
     fewer = TrainingBatch(0, 0, [0, 1], [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 1, 8, 6, 1)]], 0.0)
     other_size = TrainingBatch(0, 0, [0, 1], [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 2, 8, 7, 1)]], 0.0)
     two_sizes = TrainingBatch(0, 0, [0], [[_view_batch(0, 1, 8, 6, 0), _view_batch(0, 1, 9, 6, 1)]], 0.0)

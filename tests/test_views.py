@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from pig.avatar.batches import Sampler, TrainingBatches, ViewSource
+from pig.avatar.losses import boundary_band
 from pig.data.capture import Capture
 from pig.data.raw import CaptureError
 
@@ -68,6 +69,36 @@ def test_a_cache_that_holds_the_capture_decodes_each_view_once(small_capture):
             batches.get(i)
         assert source.decoded == len(requested) and source.hits == 30 * 2 * 3 - len(requested)
         assert source.peak_held <= 20 + 2 * 3
+
+
+def test_views_carry_the_band_of_their_mask_when_the_source_computes_it(small_capture):
+    """`fit.host_band`: the loader threads compute each view's silhouette band; it equals the device's
+    `boundary_band` of the view's mask at the radius of its height, for decoded and cached views alike, and the
+    masks and pixels stay those of the capture."""
+    capture = Capture.load(small_capture, cache_mb=0)
+    reference = Capture.load(small_capture)
+    cameras, frames = sorted(capture.cameras), capture.frames
+    sampler = Sampler(1, 2, tuple(tuple(cameras) for _ in frames), 2, 3)
+    heights = []
+
+    def radius(height: int) -> int:
+        heights.append(height)
+        return 2
+
+    with ViewSource(capture, frames, "cpu", 8, workers=2, band_radius=radius) as source:
+        batches = TrainingBatches(source, sampler, 12, 1)
+        banded = 0
+        for i in range(12):
+            views = batches.get(i).views
+            _check_pixels(views, reference, frames)
+            for vb in (vb for step_batches in views for vb in step_batches):
+                assert vb.bands.dtype == torch.bool and vb.bands.shape == vb.masks.shape
+                assert torch.equal(vb.bands, boundary_band(vb.masks, 2))
+                banded += int(vb.bands.any())
+        assert source.hits > 0 and banded > 0
+    assert set(heights) == {reference.cameras[c].height for c in cameras}
+    with ViewSource(capture, frames, "cpu", 8, workers=1) as plain:  # no radius: no bands
+        assert plain.views(plain.stage([(0, cameras[:2])]))[0][0].bands is None
 
 
 def test_picks_depend_on_seed_and_iteration_only_and_skip_missing_views():

@@ -5,9 +5,11 @@ picks are a function of (seed, iteration) alone, so batches staged ahead of the 
 batches of a resumed fit, are exactly those an uninterrupted fit draws.
 
 Views are decoded by a pool of threads (OpenCV's decoding releases the GIL) into staging buffers: uint8 RGB
-and bool masks. On CUDA the buffers are pinned and copied with non_blocking=True: the host goes on launching
-the iteration's work while the copy runs (on the compute stream, ahead of that work). A bounded LRU cache
-keeps recently decoded views. Decoded views in host memory at any time, whatever the capture's size: at
+and one uint8 a pixel for the mask (bit 0) and, when the source is given a band radius, the silhouette band of
+Eq. 15's loss (bit 1, `pig.avatar.losses.boundary_band_host`): the threads then do the band's work instead of
+the training device. On CUDA the buffers are pinned and copied with non_blocking=True: the host goes on
+launching the iteration's work while the copy runs (on the compute stream, ahead of that work). A bounded LRU
+cache keeps recently decoded views. Decoded views in host memory at any time, whatever the capture's size: at
 most `cache_views` in the cache plus the staging slots of the batches staged and not yet handed out,
 (prefetch + 1) x V x K while training (`ViewSource.peak_held` counts both), plus one view in transit per
 decode thread and the batch being trained on.
@@ -19,9 +21,14 @@ import time
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
+
+from pig.avatar.losses import boundary_band_host
+
+MASK_BIT, BAND_BIT = 1, 2  # of the staged uint8 mask
 
 
 @dataclass
@@ -36,6 +43,7 @@ class ViewBatch:
     masks: torch.Tensor  # (V, H, W) bool
     width: int
     height: int
+    bands: torch.Tensor | None = None  # (V, H, W) bool silhouette band, when the source computes it
 
 
 @dataclass
@@ -56,14 +64,17 @@ class TrainingBatch:
     views: list[list[ViewBatch]]  # per timestep, grouped by image size
     wait_s: float  # how long the caller blocked for this batch
 
-    def uniform(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int, int] | None:
+    def uniform(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int, int, torch.Tensor | None] | None:
         """When every timestep has one view batch of the same size and camera count: (viewmats (K, V, 4, 4),
-        Ks (K, V, 3, 3), images (K V, H, W, 3), masks (K V, H, W), width, height) for one render of all; else None."""
+        Ks (K, V, 3, 3), images (K V, H, W, 3), masks (K V, H, W), width, height, bands (K V, H, W) or None) for
+        one render of all; else None."""
         batches = [step_batches[0] for step_batches in self.views if len(step_batches) == 1]
         if len(batches) != len(self.views) or len({(b.width, b.height, len(b.cameras)) for b in batches}) != 1:
             return None
+        bands = torch.cat([b.bands for b in batches]) if batches[0].bands is not None else None
         return (torch.stack([b.viewmats for b in batches]), torch.stack([b.Ks for b in batches]),
-                torch.cat([b.images for b in batches]), torch.cat([b.masks for b in batches]), batches[0].width, batches[0].height)
+                torch.cat([b.images for b in batches]), torch.cat([b.masks for b in batches]), batches[0].width,
+                batches[0].height, bands)
 
 
 @dataclass(frozen=True)
@@ -94,25 +105,28 @@ class _Staged:
     """Views being decoded into staging buffers: `layout` lists, per timestep, (size, cameras, first row)."""
 
     layout: list[tuple[int, list[tuple[tuple[int, int], list[str], int]]]]
-    buffers: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]]  # (width, height) -> (n, H, W, 3) uint8, (n, H, W) bool
+    buffers: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]]  # (width, height) -> (n, H, W, 3), (n, H, W) uint8
     futures: list[Future]
     count: int
 
 
 class ViewSource:
     """Views of a capture's `frames` (indexed by timestep), decoded by `workers` threads through an LRU cache of
-    at most `cache_views` uint8 views, delivered as `ViewBatch`es on `device`.
+    at most `cache_views` uint8 views, delivered as `ViewBatch`es on `device`; with `band_radius` (image height ->
+    radius) each with its silhouette band.
 
     Reads through `capture` (load it with cache_mb=0: this cache takes the place of the capture's own). A
     decoding error (a corrupt or missing image: CaptureError naming the file) is raised by `views` for the
     batch that needs the view. Close it (or use it as a context manager) to stop the threads.
     """
 
-    def __init__(self, capture, frames: list[int], device: torch.device | str, cache_views: int, workers: int):
+    def __init__(self, capture, frames: list[int], device: torch.device | str, cache_views: int, workers: int,
+                 band_radius: Callable[[int], int] | None = None):
         self.capture = capture
         self.frames = list(frames)
         self.device = torch.device(device)
         self.cache_views = cache_views
+        self.band_radius = band_radius  # image height -> band radius; None: no bands
         self._pin = self.device.type == "cuda"
         self._viewmats = {c: torch.as_tensor(cam.viewmat(), dtype=torch.float32, device=self.device)
                           for c, cam in capture.cameras.items()}
@@ -150,7 +164,7 @@ class ViewSource:
                 sizes[size] = sizes.get(size, 0) + len(cams)
             layout.append((step, entry))
         buffers = {(w, h): (torch.empty((n, h, w, 3), dtype=torch.uint8, pin_memory=self._pin),
-                            torch.empty((n, h, w), dtype=torch.bool, pin_memory=self._pin)) for (w, h), n in sizes.items()}
+                            torch.empty((n, h, w), dtype=torch.uint8, pin_memory=self._pin)) for (w, h), n in sizes.items()}
         count = sum(sizes.values())
         with self._lock:
             self._staged_views += count
@@ -172,19 +186,26 @@ class ViewSource:
         finally:
             with self._lock:
                 self._staged_views -= staged.count
-        images, masks = {}, {}
-        for size, (rgb, mask) in staged.buffers.items():
-            images[size] = rgb.to(self.device, non_blocking=True).float().div_(255)
-            masks[size] = mask.to(self.device, non_blocking=True)
+        uploaded = {}
+        for size, (rgb, packed) in staged.buffers.items():
+            packed = packed.to(self.device, non_blocking=True)
+            uploaded[size] = (rgb.to(self.device, non_blocking=True).float().div_(255), (packed & MASK_BIT).bool(),
+                              (packed & BAND_BIT).bool() if self.band_radius else None)
         out = []
         for step, entry in staged.layout:
-            out.append([ViewBatch(step, cams, torch.stack([self._viewmats[c] for c in cams]), torch.stack([self._Ks[c] for c in cams]),
-                                  images[size][first:first + len(cams)], masks[size][first:first + len(cams)], *size)
-                        for size, cams, first in entry])
+            batches = []
+            for size, cams, first in entry:
+                rows = slice(first, first + len(cams))
+                images, masks, bands = uploaded[size]
+                batches.append(ViewBatch(step, cams, torch.stack([self._viewmats[c] for c in cams]),
+                                         torch.stack([self._Ks[c] for c in cams]), images[rows], masks[rows], *size,
+                                         None if bands is None else bands[rows]))
+            out.append(batches)
         return out
 
     def _fill(self, camera: str, frame: int, rgb: np.ndarray, mask: np.ndarray) -> None:
-        """Write the view's RGB (H, W, 3) and mask (H, W) into the staging slots, from the cache or decoded."""
+        """Write the view's RGB (H, W, 3) and packed mask and band (H, W) into the staging slots, from the cache or
+        decoded."""
         key = (camera, frame)
         with self._lock:
             view = self._cache.get(key)
@@ -195,7 +216,10 @@ class ViewSource:
             rgb[...], mask[...] = view
             return
         rgb[...] = self.capture._read("images", camera, frame)
-        mask[...] = self.capture.mask(camera, frame)
+        silhouette = self.capture.mask(camera, frame)
+        mask[...] = silhouette * MASK_BIT
+        if self.band_radius is not None:
+            mask[boundary_band_host(silhouette, self.band_radius(silhouette.shape[0]))] |= BAND_BIT
         view = (rgb.copy(), mask.copy()) if self.cache_views > 0 else None
         with self._lock:
             self.decoded += 1

@@ -13,7 +13,8 @@ Per frame there remain the posed body, the transport of the level's anchors and 
 
 The real-time path (`frame_graph=True`) goes further for pose-driven frames: the decoders' outputs of every
 training timestep at the level are computed once and held stacked on the device (when they fit in
-`decoded_budget_bytes`), so a frame is pose -> nearest timestep (an argmin on the device) -> body ->
+`decoded_budget_bytes`), and so is the body's rest shape (shape and expression blend, rest joints) of every
+training timestep, so a frame is pose -> nearest timestep (an argmin on the device) -> posed body ->
 transport -> a gather of the decoded timestep -> Eqs. 10-11, with no host synchronisation. On CUDA that
 function is compiled and captured once per level as a CUDA graph: the frame's hundreds of small kernels
 (the 55-joint chain alone is 55 matrix products) then cost one launch.
@@ -55,6 +56,7 @@ class AvatarDriver:
         self._features: dict[int, torch.Tensor] = {}  # lod -> z (n, d)
         self._z_mean: torch.Tensor | None = None
         self._refined: tuple[torch.Tensor, torch.Tensor] | None = None  # betas (nb,), pose (T, 55, 3)
+        self._rest: tuple[torch.Tensor, torch.Tensor] | None = None  # shaped vertices (T, V, 3), rest joints (T, 55, 3)
         self._nearest: OrderedDict[bytes, int] = OrderedDict()
         self._decoded: OrderedDict[tuple[int, int], DecodedAnchors] = OrderedDict()
 
@@ -85,6 +87,18 @@ class AvatarDriver:
             else:
                 self._features[lod] = model.anchor_features(self.anchors(), lod)[0]
         return self._features[lod]
+
+    @torch.no_grad()
+    def rest_shapes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The body's rest shape at every training timestep (refined betas, the timestep's expression): shaped
+        vertices (T, V, 3) and rest joints (T, 55, 3), computed once; a frame then only poses them."""
+        if self._rest is None:
+            betas, _ = self.refined()
+            body, expression = self.model.body_model, self.model.expression
+            # One timestep at a time: the per-pose path's products of the same shapes, so the same rounding.
+            parts = [body.rest_shape(1, betas, expression[t : t + 1]) for t in range(self.model.num_timesteps)]
+            self._rest = tuple(torch.cat(tensors) for tensors in zip(*parts))
+        return self._rest
 
     @torch.no_grad()
     def refined(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -178,11 +192,11 @@ class AvatarDriver:
         train_rotations, decoded_all = self._train_rotations, self._decoded_all[lod]
         query = axis_angle_to_matrix(pose[BODY_SLICE])  # (21, 3, 3)
         step = geodesic_distance(query[None], train_rotations).sum(-1).argmin()[None]  # ties -> earliest
-        betas, _ = self.refined()
+        shaped, joints_rest = self.rest_shapes()
         translation = model.transl[step] if transl is None else transl
         decoded = DecodedAnchors(*(getattr(decoded_all, f.name)[step] for f in fields(DecodedAnchors)))
-        g = model.posed_splats(self.anchors(), lod, pose[None], betas, model.expression[step], translation, decoded,
-                               sync_free=True)
+        g = model.posed_splats(self.anchors(), lod, pose[None], None, None, translation, decoded, sync_free=True,
+                               rest=(shaped[step], joints_rest[step]))
         return g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], step
 
     @torch.no_grad()
@@ -195,18 +209,20 @@ class AvatarDriver:
             raise ValueError(f"AvatarDriver: decoding all {self.model.num_timesteps} timesteps at LOD {lod} takes "
                              f"{self.decoded_all_bytes(lod) / 2**30:.2f} GiB, over decoded_budget_bytes "
                              f"({self.decoded_budget_bytes / 2**30:.2f} GiB); use gaussians() or raise the budget")
-        query = self._pose(pose)
-        translation = None if transl is None else self._transl(transl)
         if self._train_rotations is None:
             self._train_rotations = axis_angle_to_matrix(self.model.pose_init[:, BODY_SLICE])
-        self.refined()  # fills the per-avatar caches outside the graph: the frame only reads them
+        self.rest_shapes()  # fills the per-avatar caches outside the graph: the frame only reads them
         self.decoded_all(lod)
-        if query.device.type != "cuda":
-            *splats, step = self._frame(lod, query, translation)
+        if self.device.type != "cuda":
+            *splats, step = self._frame(lod, self._pose(pose), None if transl is None else self._transl(transl))
             return tuple(splats), step
+        # Host inputs stay on the host until the graph's one asynchronous copy (_FrameGraph.run).
+        query = self._pose(pose, keep_device=True)
+        translation = None if transl is None else self._transl(transl, keep_device=True)
         key = (lod, translation is not None)
         if key not in self._frames:
-            self._frames[key] = _FrameGraph(self._frame, lod, query, translation)
+            self._frames[key] = _FrameGraph(self._frame, lod, translation is not None, self.model.pose_init.dtype,
+                                            self.device)
         *splats, step = self._frames[key].run(query, translation)
         return tuple(splats), step
 
@@ -242,35 +258,61 @@ class AvatarDriver:
         if not 0 <= lod < self.model.num_levels:
             raise ValueError(f"lod must lie in 0..{self.model.num_levels - 1}, got {lod}")
 
-    def _pose(self, pose) -> torch.Tensor:
-        query = torch.as_tensor(np.asarray(pose) if not torch.is_tensor(pose) else pose)
-        if query.numel() != 55 * 3:
-            raise ValueError(f"AvatarDriver: expected a (55, 3) axis-angle pose, found shape {tuple(query.shape)}")
-        if not bool(torch.isfinite(query).all()):  # checked where it lies: host poses cost no device sync
-            raise ValueError("AvatarDriver: the pose holds NaN or infinite values")
-        return query.reshape(55, 3).to(dtype=self.model.pose_init.dtype, device=self.device)
+    def _pose(self, pose, keep_device: bool = False) -> torch.Tensor | np.ndarray:
+        """A checked (55, 3) pose in the model's dtype on the model's device; with `keep_device` a tensor stays
+        where it lies and anything else stays a host array (165,) for the frame graph's staging buffer."""
+        return self._checked(pose, (55, 3), "a (55, 3) axis-angle pose", "pose", keep_device)
 
-    def _transl(self, transl) -> torch.Tensor:
-        value = torch.as_tensor(np.asarray(transl) if not torch.is_tensor(transl) else transl)
-        if value.numel() != 3:
-            raise ValueError(f"AvatarDriver: expected a (3,) translation, found shape {tuple(value.shape)}")
-        if not bool(torch.isfinite(value).all()):
-            raise ValueError("AvatarDriver: the translation holds NaN or infinite values")
-        return value.reshape(1, 3).to(dtype=self.model.transl.dtype, device=self.device)
+    def _transl(self, transl, keep_device: bool = False) -> torch.Tensor | np.ndarray:
+        return self._checked(transl, (1, 3), "a (3,) translation", "translation", keep_device)
+
+    def _checked(self, value, shape: tuple[int, int], expected: str, what: str, keep_device: bool):
+        if keep_device and not torch.is_tensor(value):  # numpy checks: a few microseconds less of host work a frame
+            array = np.asarray(value)
+            if array.size != shape[0] * shape[1]:
+                raise ValueError(f"AvatarDriver: expected {expected}, found shape {array.shape}")
+            if not np.isfinite(array).all():
+                raise ValueError(f"AvatarDriver: the {what} holds NaN or infinite values")
+            return array.reshape(-1)
+        tensor = torch.as_tensor(np.asarray(value) if not torch.is_tensor(value) else value)
+        if tensor.numel() != shape[0] * shape[1]:
+            raise ValueError(f"AvatarDriver: expected {expected}, found shape {tuple(tensor.shape)}")
+        if not bool(torch.isfinite(tensor).all()):  # checked where it lies: host values cost no device sync
+            raise ValueError(f"AvatarDriver: the {what} holds NaN or infinite values")
+        return tensor.reshape(shape).to(dtype=self.model.pose_init.dtype, device=None if keep_device else self.device)
 
 
 class _FrameGraph:
-    """A compiled frame function captured as a CUDA graph on static pose / translation buffers."""
+    """A compiled frame function captured as a CUDA graph that reads the pose (and translation) from one static
+    device buffer. Host inputs reach it through a pinned staging buffer in one asynchronous copy: a frame costs
+    no blocking transfer and no copy kernel before the replay."""
 
-    def __init__(self, frame, lod: int, pose: torch.Tensor, transl: torch.Tensor | None):
-        self.pose = pose.clone()
-        self.transl = None if transl is None else transl.clone()
+    def __init__(self, frame, lod: int, with_transl: bool, dtype: torch.dtype, device: torch.device):
+        size = 55 * 3 + 3 * with_transl
+        self.inputs = torch.zeros(size, dtype=dtype, device=device)
+        self.staging = torch.zeros(size, dtype=dtype, pin_memory=True)
+        self.staged = torch.cuda.Event()  # the last copy out of `staging` is done once this has passed
+        self.staged.record()
+        pose = self.inputs[: 55 * 3].view(55, 3)
+        transl = self.inputs[55 * 3 :].view(1, 3) if with_transl else None
         compiled = torch.compile(frame, dynamic=False)
-        self.graph, self.outputs = capture(lambda: compiled(lod, self.pose, self.transl), pose.device, warmups=2)
+        self.graph, self.outputs = capture(lambda: compiled(lod, pose, transl), device, warmups=2)
 
-    def run(self, pose: torch.Tensor, transl: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
-        self.pose.copy_(pose)
-        if self.transl is not None:
-            self.transl.copy_(transl)
+    def run(self, pose, transl) -> tuple[torch.Tensor, ...]:
+        """Replay on `pose` (55 x 3 values) and `transl` (3 or None): CUDA tensors, or host tensors or arrays."""
+        if torch.is_tensor(pose) and pose.is_cuda:
+            self._fill(self.inputs, pose, transl)
+        else:
+            self.staged.synchronize()  # the previous frame's copy may still be reading the staging buffer
+            self._fill(self.staging.numpy(), pose, transl)
+            self.inputs.copy_(self.staging, non_blocking=True)
+            self.staged.record()
         self.graph.replay()
         return self.outputs
+
+    @staticmethod
+    def _fill(buffer, pose, transl) -> None:
+        """Write pose and translation into a device tensor (from CUDA tensors) or a host array."""
+        buffer[: 55 * 3] = pose.reshape(-1)
+        if transl is not None:
+            buffer[55 * 3 :] = transl.reshape(-1)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import sys
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -75,6 +77,16 @@ def boundary_band(mask: torch.Tensor, radius: int) -> torch.Tensor:
     dilated = _square_max(m, radius) > 0.5
     eroded = -_square_max(-m, radius) > 0.5
     return (dilated & ~eroded)[:, 0]
+
+
+def boundary_band_host(mask: np.ndarray, radius: int) -> np.ndarray:
+    """`boundary_band` of one (H, W) bool mask on the host with OpenCV, the same pixels (tests/test_fit.py): what
+    the view loader threads compute with `fit.host_band`, so that the training device does not."""
+    if radius <= 0:
+        return np.zeros(mask.shape, bool)
+    m, kernel = np.ascontiguousarray(mask, dtype=bool).view(np.uint8), np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    # Erosion treats the outside as inside (replicated edge), as the max-pool's padding leaves it out.
+    return cv2.dilate(m, kernel).view(bool) & ~cv2.erode(m, kernel, borderType=cv2.BORDER_REPLICATE).view(bool)
 
 
 def _square_max(m: torch.Tensor, radius: int) -> torch.Tensor:

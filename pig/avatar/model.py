@@ -118,11 +118,13 @@ class AvatarModel(nn.Module):
         posing = self._compiled_posing if self._compiled_posing is not None and torch.is_grad_enabled() else self.posed_splats
         return posing(x, lod, pose, betas, self.expression[timesteps], translation, decoded)
 
-    def posed_splats(self, x: torch.Tensor, lod: int, pose: torch.Tensor, betas: torch.Tensor, expression: torch.Tensor,
-                     translation: torch.Tensor, decoded: DecodedAnchors, sync_free: bool = False) -> Gaussians:
+    def posed_splats(self, x: torch.Tensor, lod: int, pose: torch.Tensor, betas: torch.Tensor | None,
+                     expression: torch.Tensor | None, translation: torch.Tensor, decoded: DecodedAnchors,
+                     sync_free: bool = False, rest: tuple[torch.Tensor, torch.Tensor] | None = None) -> Gaussians:
         """Eqs. 2-3 and 10-11: the body in `pose` (K, 55, 3), the level's anchors among canonical `x` (N, 3)
-        transported onto it, and the splats of their `decoded` attributes."""
-        body = self.body_model(pose, betas, expression, translation)
+        transported onto it, and the splats of their `decoded` attributes. `rest`: the body's rest shape in place
+        of betas and expression (BodyModel.forward)."""
+        body = self.body_model(pose, betas, expression, translation, rest=rest)
         centres, rotation = self.transport(x, body.vertices, lod, sync_free)
         return self.splats(centres, rotation, decoded)
 

@@ -10,7 +10,8 @@ decoder MLPs and of the L1 + SSIM loss, with SSIM's blur as shifted sums that co
 `compile_posing` (torch.compile of the body model, transport and splat assembly of a training step),
 `batched_render` (one rasterizer call and one loss evaluation for all timesteps and views), `fused_adam`
 (torch's fused Adam kernels instead of a loop over tensors), `log_every` (loss terms read back to the host
-every N iterations, not every one). The KNN solve's host synchronisations are `precond.cg_check_every`.
+every N iterations, not every one), `host_band` (the loss's silhouette band computed by the view loader threads
+with OpenCV, not on the training device). The KNN solve's host synchronisations are `precond.cg_check_every`.
 """
 from __future__ import annotations
 
@@ -105,6 +106,7 @@ class FitConfig:
     batched_render: bool = False
     fused_adam: bool = False
     log_every: int = 1
+    host_band: bool = False
 
     def __post_init__(self):
         for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),
@@ -223,8 +225,14 @@ class LossTerms:
         l1_ssim = lambda render, target, band: image_loss(render, target, band, background, weights, None, blur)
         self._l1_ssim = torch.compile(l1_ssim) if compiled else l1_ssim
 
-    def __call__(self, render: torch.Tensor, images: torch.Tensor, masks: torch.Tensor, height: int) -> dict[str, torch.Tensor]:
-        band = boundary_band(masks, band_radius(height, self.cfg.band_radius_px, self.cfg.band_reference_height))
+    def band_radius(self, height: int) -> int:
+        return band_radius(height, self.cfg.band_radius_px, self.cfg.band_reference_height)
+
+    def __call__(self, render: torch.Tensor, images: torch.Tensor, masks: torch.Tensor, height: int,
+                 band: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """`band`: the views' silhouette band where the loader computed it (`host_band`), else from `masks`."""
+        if band is None:
+            band = boundary_band(masks, self.band_radius(height))
         terms = dict(self._l1_ssim(render, images, band))
         if self.lpips is not None and self.cfg.weight_lpips > 0:
             x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
@@ -241,12 +249,12 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
         g = model(torch.tensor(batch.timesteps), batch.lod)
     uniform = batch.uniform() if batched else None
     if uniform is not None:
-        viewmats, Ks, images, masks, width, height = uniform
+        viewmats, Ks, images, masks, width, height, bands = uniform
         with phase("render"):
             out = render_timesteps(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats, Ks, width, height, background,
                                    backend=raster.backend, max_pairs=raster.max_pairs)
         with phase("loss"):
-            return loss(out.color.flatten(0, 1), images, masks, height)
+            return loss(out.color.flatten(0, 1), images, masks, height, bands)
     num_views = sum(len(vb.cameras) for step_batches in batch.views for vb in step_batches)
     totals: dict[str, torch.Tensor] = {}
     for k, step_batches in enumerate(batch.views):
@@ -255,7 +263,7 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
                 out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
                                        vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
             with phase("loss"):
-                terms = loss(out.color, vb.images, vb.masks, vb.height)
+                terms = loss(out.color, vb.images, vb.masks, vb.height, vb.bands)
                 for key, value in terms.items():
                     totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
     return totals
@@ -355,7 +363,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings, loss_terms)
         _write_log(log_path, rows)
 
-    with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers) as source, \
+    with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers,
+                    loss.band_radius if fit_cfg.host_band else None) as source, \
             _matmul_precision(fit_cfg.precision):
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)

@@ -135,15 +135,24 @@ class BodyModel(nn.Module):
         betas: torch.Tensor | None = None,
         expression: torch.Tensor | None = None,
         transl: torch.Tensor | None = None,
+        rest: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> BodyOutput:
         """Pose the model.
 
         full_pose: (B, 55, 3) or (B, 165) axis-angle; betas: (nb,), (1, nb) or (B, nb), nb <= num_betas;
-        expression: (B, ne) or (ne,); transl: (B, 3). Missing parameters are zeros.
+        expression: (B, ne) or (ne,); transl: (B, 3). Missing parameters are zeros. `rest`: the (shaped
+        vertices (B, V, 3), rest joints (B, 55, 3)) of `rest_shape`, in place of betas and expression, where
+        they are computed once for many poses (the real-time frame, pig.avatar.driver).
         """
+        full_pose = full_pose.to(self.dtype).reshape(full_pose.shape[0], NUM_JOINTS, 3)
+        shaped, joints_rest = self.rest_shape(full_pose.shape[0], betas, expression) if rest is None else rest
+        return self._pose(full_pose, shaped, joints_rest, transl)
+
+    def rest_shape(self, batch: int, betas: torch.Tensor | None = None,
+                   expression: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Shaped rest-pose vertices (B, V, 3) (shape + expression blend) and the joints regressed from them
+        (B, 55, 3); arguments as `forward`'s."""
         dtype, device = self.dtype, self.v_template.device
-        full_pose = full_pose.to(dtype).reshape(full_pose.shape[0], NUM_JOINTS, 3)
-        batch = full_pose.shape[0]
         coeffs = torch.zeros(batch, self.shapedirs.shape[2], dtype=dtype, device=device)
         if betas is not None:
             betas = betas.to(dtype).reshape(-1, betas.shape[-1])
@@ -155,8 +164,13 @@ class BodyModel(nn.Module):
             count = min(expression.shape[-1], self.num_expression)
             coeffs[:, self.num_betas : self.num_betas + count] = expression[:, :count].expand(batch, -1)
         shaped = self.v_template + torch.einsum("vcs,bs->bvc", self.shapedirs, coeffs)
-        joints_rest = torch.einsum("jv,bvc->bjc", self.j_regressor, shaped)
+        return shaped, torch.einsum("jv,bvc->bjc", self.j_regressor, shaped)
 
+    def _pose(self, full_pose: torch.Tensor, shaped: torch.Tensor, joints_rest: torch.Tensor,
+              transl: torch.Tensor | None) -> BodyOutput:
+        """Pose blend, rigid chain and skinning of the shaped rest body; `full_pose` (B, 55, 3)."""
+        dtype, device = self.dtype, self.v_template.device
+        batch = full_pose.shape[0]
         rotations = axis_angle_to_matrix(full_pose)  # (B, 55, 3, 3)
         eye = torch.eye(3, dtype=dtype, device=device)
         pose_feature = (rotations[:, 1:] - eye).reshape(batch, -1)

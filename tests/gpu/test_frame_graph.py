@@ -40,3 +40,23 @@ def test_captured_frame_follows_new_poses(tmp_path, with_transl):
                 # Inductor fuses and reorders the float32 arithmetic: rounding-level differences (2.6e-5 seen)
                 torch.testing.assert_close(ours, theirs, rtol=2e-4, atol=2e-4)
     assert len(graph._frames) == model.num_levels  # one capture per level
+
+
+def test_back_to_back_frames_read_their_own_pose(tmp_path):
+    """Frames requested without a host synchronisation between them: each replay must read its own pose, i.e. the
+    host must not refill the pinned staging buffer while the previous frame's copy out of it is still queued."""
+    from pig.body.standin import write_standin
+
+    write_standin(tmp_path / "body_model.npz")
+    model = _avatar((tmp_path / "body_model.npz").read_bytes()).cuda()
+    graph, plain = AvatarDriver(model, frame_graph=True), AvatarDriver(model)
+    rng = np.random.default_rng(1)
+    train = model.pose_init.cpu().numpy()
+    poses = [train[i % model.num_timesteps] + rng.normal(scale=0.05, size=(55, 3)) for i in range(8)]
+    lod = model.num_levels - 1
+    graph.posed_frame(lod, poses[0])  # compile and capture outside the queued run
+    torch.cuda.synchronize()
+    torch.cuda._sleep(50_000_000)  # keeps the stream busy, so the copies below queue behind it
+    means = [graph.posed_frame(lod, pose)[0][0].clone() for pose in poses]  # clone: ordered on the stream, no sync
+    for pose, ours in zip(poses, means):
+        torch.testing.assert_close(ours, plain.gaussians(lod, pose)[0], rtol=2e-4, atol=2e-4)
