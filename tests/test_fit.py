@@ -340,3 +340,22 @@ def test_fit_without_training_images_names_the_capture(small_capture, tmp_path):
     with pytest.raises(CaptureError, match=r"capture: no image and mask of the train split \(cameras \['cam00'"):
         fit(capture_dir, tmp_path / "pig", _preset(tmp_path))
     assert not any((tmp_path / "pig" / name).exists() for name in ("avatar.pt", "checkpoint.pt", "train_log.csv"))
+
+
+def test_threads_argument_takes_the_place_of_the_presets_cpu_threads(small_capture, tmp_path):
+    """The workflow passes the rule's threads (`--threads`) to a CPU fit; without them the preset's fit.cpu_threads
+    holds. A resume with other threads is the same fit. The caller's thread count comes back afterwards."""
+    from pig.avatar.training import fit
+    from pig.stages.fit import main
+
+    preset = yaml.safe_load(open(_preset(tmp_path)))
+    preset["fit"].update(iterations=2, eval_every=2, cpu_threads=2)
+    path = tmp_path / "threads.yaml"
+    path.write_text(yaml.safe_dump(preset))
+    before, seen = torch.get_num_threads(), {}
+    for name, threads in (("preset", None), ("argument", 1)):
+        fit(small_capture, tmp_path / name, str(path), on_iteration=lambda i, n=name: seen.setdefault(n, torch.get_num_threads()),
+            threads=threads)
+    assert seen == {"preset": 2, "argument": 1} and torch.get_num_threads() == before
+    with pytest.raises(SystemExit):
+        main(["--capture", str(small_capture), "--output", str(tmp_path / "zero"), "--preset", str(path), "--threads", "0"])

@@ -26,7 +26,7 @@ TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteratio
 # Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading,
 # memory bands, replaying the same CG kernels as a CUDA graph.
 FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers", "log_every",
-                         "host_band"},
+                         "host_band", "cpu_threads"},
                  "rasterizer": {"max_pairs"}, "precond": {"cg_graphs"}}
 SPEC_SECTIONS = ("avatar", "field", "precond")  # preset sections recorded in the spec
 

@@ -21,7 +21,7 @@ import math
 import sys
 import time
 from contextlib import AbstractContextManager, contextmanager, nullcontext
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -271,8 +271,11 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
 
 def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, variant: str = "pig",
         device: torch.device | str = "cpu", on_iteration: Callable[[int], None] | None = None,
-        phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False) -> Path:
+        phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False,
+        threads: int | None = None) -> Path:
     """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
+
+    `threads`: torch CPU threads of a CPU fit in place of the preset's `fit.cpu_threads`.
 
     Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
     or with `overwrite`.
@@ -283,17 +286,17 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     (benchmarks/fit_gpu.py). The wait for the views is also logged (train_log.csv's data_wait_ms) and its
     mean printed at the end.
     """
-    threads = torch.get_num_threads()
+    callers_threads = torch.get_num_threads()
     try:
         return _fit(Path(capture_dir), Path(output_dir), preset_name, variant, resolve_device(str(device), "--device"),
-                    on_iteration, phase or (lambda name: nullcontext()), overwrite)
+                    on_iteration, phase or (lambda name: nullcontext()), overwrite, threads)
     finally:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(callers_threads)
 
 
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
          on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
-         overwrite: bool) -> Path:
+         overwrite: bool, threads: int | None) -> Path:
     preset = load_preset(preset_name)
     overrides = variant_overrides(preset, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -301,6 +304,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         raise ConfigError(f"{preset['_path']}: variant {variant!r} overrides unknown section(s) {unknown}")
     avatar_cfg = load_section(preset, "avatar", AvatarConfig, overrides.get("avatar"))
     fit_cfg = load_section(preset, "fit", FitConfig, overrides.get("fit"))
+    if threads is not None:
+        fit_cfg = replace(fit_cfg, cpu_threads=threads)
     field_cfg = load_section(preset, "field", FieldConfig, overrides.get("field"))
     precond_cfg = load_section(preset, "precond", PrecondConfig, overrides.get("precond"))
     raster = load_section(preset, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))

@@ -21,11 +21,17 @@ def main(argv: list[str] | None = None) -> int:
     add_preset_argument(parser, "its avatar, fit, field, precond, rasterizer and variants sections")
     parser.add_argument("--variant", default="pig", help="method variant from the preset's `variants` section")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads of a CPU fit (default: the preset's fit.cpu_threads; the workflow passes "
+                             "the rule's threads)")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace avatar.pt, checkpoint.pt, train_log.* in an --output folder the fit stage did not write")
     args = parser.parse_args(argv)
-    path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite)
+    if args.threads is not None and args.threads < 1:
+        parser.error(f"--threads must be at least 1, found {args.threads}")
+    path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite,
+               threads=args.threads)
     print(path)
     return 0
 

@@ -29,4 +29,4 @@ rule fit_avatar:
         ),
     shell:
         "python -m pig.stages.fit --capture {params.capture:q} --output {params.output:q} "
-        "--preset {params.preset:q} --variant {wildcards.variant:q} > {log:q} 2>&1"
+        "--preset {params.preset:q} --variant {wildcards.variant:q} --threads {threads} > {log:q} 2>&1"
