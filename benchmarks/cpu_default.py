@@ -1,0 +1,127 @@
+"""The CPU default's fit (cpu-demo preset) under candidate overrides: quality over seeds, or the cost of a step.
+
+Quality (default): per candidate and seed, the fit stage on a preprocessed capture, then the render stage on both
+held-out splits and the evaluate stage at the finest LOD, as the default target runs them; prints one row per fit
+(fit wall time, novel-view and novel-pose PSNR) and the mean per candidate. The CPU fit is deterministic for a given
+thread count, so the PSNRs repeat exactly; the seed (`fit.seed`: initialisation and batch order) is what spreads
+them, so compare candidates over several seeds. `--jobs 2` runs two fits side by side (one thread each): their
+PSNRs stay exact, their times do not.
+
+Step cost (`--steps N`): per candidate, N iterations of the fit with `--threads` torch threads, seconds per
+iteration over iterations 10..N, the candidates taken in turn `--repeats` times in one process.
+
+    python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --seeds 0 1 --jobs 2 \\
+        --candidate default: --candidate d8:field.features=8,fit.iterations=1800
+    python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --steps 40 --threads 1 \\
+        --candidate default: --candidate d8:field.features=8
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import yaml
+
+from fit_gpu import parse_variant
+from pig.config import load_preset
+
+
+def write_preset(base: str, overrides: dict, path: Path, **fit) -> Path:
+    preset = load_preset(base)
+    preset.pop("_path")
+    for section, values in overrides.items():
+        preset.setdefault(section, {}).update(values)
+    preset["fit"].update(fit)
+    path.write_text(yaml.safe_dump(preset))
+    return path
+
+
+def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path, base: str, threads: int) -> dict:
+    """Fit, render both splits, evaluate the finest LOD; the stages as subprocesses, as the workflow runs them."""
+    root = workdir / f"{name}_seed{seed}"
+    shutil.rmtree(root, ignore_errors=True)
+    root.mkdir(parents=True)
+    preset = write_preset(base, overrides, root / "preset.yaml", seed=seed)
+
+    def stage(*args: str) -> None:
+        with open(root / "log.txt", "a") as log:
+            subprocess.run([sys.executable, "-m", *args, "--preset", str(preset)], check=True, stdout=log, stderr=log)
+
+    started = time.perf_counter()
+    stage("pig.stages.fit", "--capture", str(capture), "--output", str(root / "fit"), "--threads", str(threads))
+    row = {"name": name, "seed": seed, "fit_s": time.perf_counter() - started}
+    for split in ("novel_view", "novel_pose"):
+        renders = root / "renders" / split
+        stage("pig.stages.render", "--checkpoint", str(root / "fit" / "avatar.pt"), "--capture", str(capture),
+              "--split", split, "--output", str(renders))
+        levels = sorted(int(p.name[3:]) for p in renders.glob("lod*"))
+        stage("pig.stages.evaluate", "--capture", str(capture), "--renders", str(renders), "--split", split,
+              "--lod", str(levels[-1]), "--output", str(root / "metrics"))
+        row[split] = json.loads((root / "metrics" / f"{split}_lod{levels[-1]}.json").read_text())["psnr"]
+    print(f"| {name} | {seed} | {row['fit_s']:.0f} | {row['novel_view']:.2f} | {row['novel_pose']:.2f} |", flush=True)
+    return row
+
+
+def step_cost(capture: Path, candidates: list[tuple[str, dict]], steps: int, threads: int, repeats: int,
+              workdir: Path, base: str) -> None:
+    from pig.avatar.training import fit
+
+    times: dict[str, list[float]] = {name: [] for name, _ in candidates}
+    for _ in range(repeats):
+        for name, overrides in candidates:
+            preset = write_preset(base, overrides, workdir / f"{name}.yaml", iterations=steps, eval_every=10**6,
+                                  checkpoint_minutes=10**6)
+            marks = {}
+            out = workdir / f"{name}_steps"
+            shutil.rmtree(out, ignore_errors=True)
+            fit(capture, out, str(preset), threads=threads,
+                on_iteration=lambda i: marks.__setitem__(i, time.perf_counter()) if i in (10, steps) else None)
+            times[name].append((marks[steps] - marks[10]) / (steps - 10))
+    first = statistics.median(times[candidates[0][0]])
+    print(f"\n| candidate | s/it ({threads} threads, median of {repeats}) | vs first |\n|---|---|---|")
+    for name, values in times.items():
+        print(f"| {name} | {statistics.median(values):.3f} | {statistics.median(values) / first:.2f} |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture (the default run's)")
+    parser.add_argument("--candidate", action="append", default=[], help="NAME:section.key=value,... (repeatable)")
+    parser.add_argument("--preset", default="cpu-demo", help="the preset the candidates override")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--jobs", type=int, default=1, help="fits side by side (quality mode)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads of each fit")
+    parser.add_argument("--steps", type=int, default=0, help="step-cost mode: iterations per candidate (> 10)")
+    parser.add_argument("--repeats", type=int, default=2, help="step-cost mode: rounds over the candidates")
+    parser.add_argument("--workdir", type=Path, default=None, help="default: a temporary folder")
+    args = parser.parse_args(argv)
+    candidates = [parse_variant(c) for c in args.candidate] or [("default", {})]
+    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="pig_cpu_default_"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    if args.steps:
+        if args.steps <= 10:
+            parser.error("--steps must exceed 10 (the first 10 iterations are not timed)")
+        step_cost(args.capture, candidates, args.steps, args.threads, args.repeats, workdir, args.preset)
+        return 0
+    print("| candidate | seed | fit s | novel view dB | novel pose dB |\n|---|---|---|---|---|", flush=True)
+    runs = [(name, overrides, seed) for name, overrides in candidates for seed in args.seeds]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        rows = list(pool.map(lambda run: quality(args.capture, *run, workdir, args.preset, args.threads), runs))
+    print("\n| candidate | seeds | novel view dB (mean) | novel pose dB (mean) |\n|---|---|---|---|")
+    for name, _ in candidates:
+        mine = [r for r in rows if r["name"] == name]
+        print(f"| {name} | {len(mine)} | {statistics.mean(r['novel_view'] for r in mine):.2f} | "
+              f"{statistics.mean(r['novel_pose'] for r in mine):.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
