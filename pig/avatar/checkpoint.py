@@ -23,8 +23,9 @@ from .losses import LPIPS_STATES
 FORMAT_VERSION = 2  # 1 held numpy arrays, which only an unrestricted (code-running) unpickler reads
 AVATAR_KEYS = ("version", "spec", "model")
 TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteration", "wall_s", "log", "settings")
-# Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading,
-# memory bands, replaying the same CG kernels as a CUDA graph.
+# Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading (and
+# whether its threads compute the loss's band: the same pixels), CPU threads, memory bands, replaying the same CG
+# kernels as a CUDA graph.
 FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers", "log_every",
                          "host_band", "cpu_threads"},
                  "rasterizer": {"max_pairs"}, "precond": {"cg_graphs"}}
