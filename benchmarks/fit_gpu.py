@@ -184,6 +184,9 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
         with open(out_dir / "train_log.csv", newline="") as file:
             rows = [row for row in csv.DictReader(file) if row["heldout_psnr"]]
         result["heldout"] = {int(row["iteration"]): float(row["heldout_psnr"]) for row in rows}
+        # With a weight average (fit.average_decay) "heldout" is the average's; these are the iterate's where they differ.
+        result["heldout_iterate"] = {int(row["iteration"]): float(row["heldout_psnr_iterate"]) for row in rows
+                                     if row.get("heldout_psnr_iterate")}
         result["heldout_by_time"] = [(float(row["train_s"]), float(row["heldout_psnr"])) for row in rows]
     if args.profile_ops:
         table = ops.key_averages().table(sort_by="device_time_total", row_limit=args.op_rows, max_name_column_width=70)

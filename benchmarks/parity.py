@@ -1,5 +1,6 @@
 """Held-out PSNR curves of fit runs made by `benchmarks/fit_gpu.py --eval-every N --json F` (one or more files):
-a table of every variant's PSNR per evaluation with its difference to the first variant's, and a plot.
+a table of every variant's PSNR per evaluation with its difference to the first variant's, and a plot. With
+`--iterate`, the curves of the iterates of runs that evaluated a weight average.
 
     python benchmarks/parity.py benchmarks/gpu_runs/run9/parity_fast.json benchmarks/gpu_runs/run9/parity_baseline.json \
         --reference baseline --plot benchmarks/gpu_runs/run9/parity.png
@@ -20,10 +21,14 @@ def main(argv=None) -> int:
     parser.add_argument("results", type=Path, nargs="+", help="fit_gpu.py --json files")
     parser.add_argument("--reference", default=None, help="variant the others are compared with (default: the first)")
     parser.add_argument("--plot", type=Path, default=None)
+    parser.add_argument("--iterate", action="store_true",
+                        help="the iterates' PSNR where the runs evaluated a weight average (fit.average_decay)")
     args = parser.parse_args(argv)
     runs = [r for path in args.results for r in json.loads(path.read_text())["results"]]
     for r in runs:
         r["heldout"] = {int(k): v for k, v in r["heldout"].items()}
+        if args.iterate:  # before the average starts the iterate is what was evaluated
+            r["heldout"].update({int(k): v for k, v in r.get("heldout_iterate", {}).items()})
     runs.sort(key=lambda r: r["name"] != (args.reference or runs[0]["name"]))
     first = runs[0]
     print(f"| iteration | " + " | ".join(r["name"] for r in runs) + " | " +

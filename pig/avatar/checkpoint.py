@@ -17,6 +17,7 @@ import torch
 
 from pig.stages._io import atomic_path
 
+from .averaging import WeightAverage
 from .build import build_avatar
 from .losses import LPIPS_STATES
 
@@ -37,15 +38,18 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(path: Path, model, spec: dict, optimizers: list, generator: torch.Generator, iteration: int,
-                    wall_s: float, log_rows: list[dict], settings: dict[str, dict], loss_terms: dict[str, dict]) -> None:
+                    wall_s: float, log_rows: list[dict], settings: dict[str, dict], loss_terms: dict[str, dict],
+                    average: WeightAverage | None = None) -> None:
     """Write everything a resume needs; `spec` (see `build_avatar`) holds the capture's fingerprint under
-    "capture", `settings` the other preset sections the fit uses ({"fit": {...}, "rasterizer": {...}}), and
-    `loss_terms` the records of the fit's loss terms ({"lpips": a record of `lpips_term`})."""
+    "capture", `settings` the other preset sections the fit uses ({"fit": {...}, "rasterizer": {...}}),
+    `loss_terms` the records of the fit's loss terms ({"lpips": a record of `lpips_term`}) and `average` the
+    fit's weight average, if it keeps one."""
     state = _plain({
         "version": FORMAT_VERSION, "spec": _stored_spec(spec), "model": _weights(model),
         "optimizers": [opt.state_dict() for opt in optimizers], "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(), "iteration": iteration, "wall_s": wall_s, "log": log_rows,
         "settings": settings, "loss_terms": loss_terms,
+        "average": average.state_dict() if average is not None else None,
     }, "state")
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
@@ -210,9 +214,10 @@ def _mismatch(state: dict, spec: dict, settings: dict[str, dict], terms: dict[st
 
 
 def load_training_state(path: Path, model, optimizers: list, generator: torch.Generator, spec: dict,
-                        settings: dict[str, dict], loss_terms: dict[str, dict]) -> tuple[int, float, list[dict]]:
-    """Restore weights, optimisers and RNG from a checkpoint of the same fit (capture, preset sections,
-    variant, LPIPS term: see `_mismatch`); returns (iteration, wall seconds so far, log rows)."""
+                        settings: dict[str, dict], loss_terms: dict[str, dict],
+                        average: WeightAverage | None = None) -> tuple[int, float, list[dict]]:
+    """Restore weights, optimisers, RNG and the weight `average` from a checkpoint of the same fit (capture,
+    preset sections, variant, LPIPS term: see `_mismatch`); returns (iteration, wall seconds so far, log rows)."""
     state = _read(path, TRAINING_KEYS)
     differs = _mismatch(state, spec, settings, loss_terms, _loss_terms(state, path))
     if differs:
@@ -223,4 +228,9 @@ def load_training_state(path: Path, model, optimizers: list, generator: torch.Ge
         opt.load_state_dict(opt_state)  # moves the moments onto the parameters' device
     generator.set_state(state["generator"])
     torch.set_rng_state(state["torch_rng"])
+    if average is not None and state.get("average") is not None:  # the settings match, so the fit kept one
+        try:
+            average.load_state_dict(state["average"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise CheckpointError(f"{path}: weight average unreadable ({err}); delete it to start the fit over") from err
     return state["iteration"], state["wall_s"], state["log"]

@@ -28,6 +28,7 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
+from pig.avatar.averaging import WeightAverage
 from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
@@ -48,8 +49,11 @@ from pig.stages._outputs import claim_files
 
 # lpips_term: the LPIPS term's state on every row (pig.avatar.losses.LPIPS_STATES; "on" is the paper's loss).
 # train_s: wall time less this run's held-out evaluations (what the time budget counts; the x axis of the
-# error-against-time plots); logs written before it existed lack the column.
-LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr", "data_wait_ms"]
+# error-against-time plots); logs written before it existed lack the column. heldout_psnr: of the weight average
+# once it has started (fit.average_decay), else of the weights of that iteration; heldout_psnr_iterate: of that
+# iteration's own weights while an average is evaluated (what the average buys), else empty.
+LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr",
+               "heldout_psnr_iterate", "data_wait_ms"]
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
 PRECISIONS = ("float32", "tf32", "bf16")
 
@@ -68,6 +72,10 @@ class FitConfig:
     # With `time_budget_s` the run's progress is the larger of its iteration and time fractions.
     lr_warmup: int = 0
     lr_final: float = 1.0
+    # Weight averaging (pig.avatar.averaging): from progress `average_start` on, an EMA with `average_decay` of the
+    # optimised tensors; held-out evaluations and avatar.pt use it. 0: off (the last iterate, the paper's).
+    average_decay: float = 0.0
+    average_start: float = 0.5
     weight_l1: float = 8.0
     weight_ssim: float = 2.0
     weight_lpips: float = 2.0
@@ -115,6 +123,10 @@ class FitConfig:
                 raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
         if self.precision not in PRECISIONS:
             raise ConfigError(f"fit.precision must be one of {PRECISIONS}, found {self.precision!r}")
+        if not 0 <= self.average_decay < 1:
+            raise ConfigError(f"fit.average_decay must lie in [0, 1), found {self.average_decay}")
+        if not 0 <= self.average_start <= 1:
+            raise ConfigError(f"fit.average_start must lie in [0, 1], found {self.average_start}")
         if not 0 < self.lr_final <= 1:
             raise ConfigError(f"fit.lr_final must lie in (0, 1], found {self.lr_final}")
         if self.lpips_weights not in ("pretrained", "random"):
@@ -339,6 +351,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         model.compile_posing()
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg, fused=fit_cfg.fused_adam)
     base_lrs = [[group["lr"] for group in opt.param_groups] for opt in optimizers]  # the schedule scales these
+    average = WeightAverage(optimizers, fit_cfg.average_decay) if fit_cfg.average_decay > 0 else None
     generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
     lpips, lpips_record = lpips_term(fit_cfg, device)
     loss_terms = {"lpips": lpips_record}
@@ -353,10 +366,13 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         model.grid.set_lambdas(grid_lambdas)
         for level in model.grid.levels:  # moments of lambda-0 gradients would damp the smoothed steps for ~1/(1 - beta2)
             optimizers[0].state.pop(level.param, None)
+        if average is not None:  # the grid's tensors were re-based: an average across the switch means nothing
+            average.restart()
 
     start, wall_before, rows = 0, 0.0, []
     if state_path.exists():
-        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings, loss_terms)
+        start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings, loss_terms,
+                                                       average)
         print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
         if grid_delay and start > grid_delay:
             model.grid.set_lambdas(grid_lambdas, keep_values=False)
@@ -365,7 +381,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     loss = LossTerms(fit_cfg, background, lpips, fit_cfg.compile)
 
     def checkpoint(path: Path, iteration: int, wall: float) -> None:
-        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings, loss_terms)
+        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings, loss_terms, average)
         _write_log(log_path, rows)
 
     with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers,
@@ -374,9 +390,18 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
+
+        def evaluate_held_out() -> dict:
+            if average is None or not average.started:
+                return {"heldout_psnr": held_out.psnr(model, raster), "heldout_psnr_iterate": ""}
+            iterate = held_out.psnr(model, raster)
+            with average.applied():
+                return {"heldout_psnr": held_out.psnr(model, raster), "heldout_psnr_iterate": iterate}
+
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "train_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
-                     "lpips_term": lpips_record["state"], "heldout_psnr": held_out.psnr(model, raster), "data_wait_ms": ""}]
+                     "lpips_term": lpips_record["state"], **evaluate_held_out(), "data_wait_ms": ""}]
+
         started = time.perf_counter()
         evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
         last_save = started
@@ -392,7 +417,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             now = time.perf_counter()
             row = {"iteration": iteration, "wall_s": round(wall_before + now - started, 3),
                    "train_s": round(wall_before + now - started - evaluating, 3), "lod": lod,
-                   "lpips_term": lpips_record["state"], "heldout_psnr": "",
+                   "lpips_term": lpips_record["state"], "heldout_psnr": "", "heldout_psnr_iterate": "",
                    "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3),
                    **{key: window[name].item() / count if name in window else "" for key, name in
                       (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
@@ -427,6 +452,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             with phase("step"):
                 for opt in optimizers:
                     opt.step()
+                if average is not None and done >= fit_cfg.average_start:
+                    average.update()
             for key, value in terms.items():
                 window[key] = window.get(key, 0) + value.detach()
 
@@ -437,7 +464,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 row = window_row(iteration, batch.lod)
                 if evaluate:
                     t0 = time.perf_counter()
-                    row["heldout_psnr"] = held_out.psnr(model, raster)
+                    row.update(evaluate_held_out())
                     evaluating += time.perf_counter() - t0
                     progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}", refresh=False)
                 rows.append(row)
@@ -451,7 +478,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
             rows.append(window_row(iteration, ""))
         if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
-            rows[-1]["heldout_psnr"] = held_out.psnr(model, raster)
+            rows[-1].update(evaluate_held_out())
     if waits:
         per_iteration = (time.perf_counter() - started - evaluating) / len(waits)
         print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "
@@ -460,7 +487,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
 
     if grid_delay and iteration <= grid_delay:  # stopped before the switch: store the grid under the preset's lambdas
         start_grid_smoothing()
-    checkpoint(avatar_path, iteration, wall_before + time.perf_counter() - started)
+    with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
+        checkpoint(avatar_path, iteration, wall_before + time.perf_counter() - started)
     _plot_log(output_dir / "train_log.png", rows)
     state_path.unlink(missing_ok=True)
     return avatar_path
