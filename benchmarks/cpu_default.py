@@ -9,7 +9,8 @@ them, so compare candidates over several seeds. `--jobs 2` runs two fits side by
 PSNRs stay exact, their times do not.
 
 Step cost (`--steps N`): per candidate, N iterations of the fit with `--threads` torch threads, seconds per
-iteration over iterations 10..N, the candidates taken in turn `--repeats` times in one process.
+iteration over iterations 10..N, the candidates taken in turn `--repeats` times in one process; `--profile-ops K`
+also prints the K operators that took the most CPU time over those iterations.
 
     python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --seeds 0 1 --jobs 2 \\
         --candidate default: --candidate d8:field.features=8,fit.iterations=1800
@@ -79,7 +80,9 @@ def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path,
 
 
 def step_cost(capture: Path, candidates: list[tuple[str, dict]], steps: int, threads: int, repeats: int,
-              workdir: Path, base: str) -> None:
+              workdir: Path, base: str, profile_ops: int = 0) -> None:
+    import torch
+
     from pig.avatar.training import fit
 
     times: dict[str, list[float]] = {name: [] for name, _ in candidates}
@@ -90,9 +93,19 @@ def step_cost(capture: Path, candidates: list[tuple[str, dict]], steps: int, thr
             marks = {}
             out = workdir / f"{name}_steps"
             shutil.rmtree(out, ignore_errors=True)
-            fit(capture, out, str(preset), threads=threads,
-                on_iteration=lambda i: marks.__setitem__(i, time.perf_counter()) if i in (10, steps) else None)
+            ops = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) if profile_ops else None
+
+            def tick(i: int) -> None:
+                if i in (10, steps):
+                    marks[i] = time.perf_counter()
+                    if ops is not None:  # the timed steps under the profiler (which slows them a little)
+                        ops.start() if i == 10 else ops.stop()
+
+            fit(capture, out, str(preset), threads=threads, on_iteration=tick)
             times[name].append((marks[steps] - marks[10]) / (steps - 10))
+            if ops is not None:
+                print(f"\nOperators by CPU time, {name}, steps 10..{steps}:\n"
+                      + ops.key_averages().table(sort_by="self_cpu_time_total", row_limit=profile_ops))
     first = statistics.median(times[candidates[0][0]])
     print(f"\n| candidate | s/it ({threads} threads, median of {repeats}) | vs first |\n|---|---|---|")
     for name, values in times.items():
@@ -109,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="torch threads of each fit")
     parser.add_argument("--steps", type=int, default=0, help="step-cost mode: iterations per candidate (> 10)")
     parser.add_argument("--repeats", type=int, default=2, help="step-cost mode: rounds over the candidates")
+    parser.add_argument("--profile-ops", type=int, default=0,
+                        help="step-cost mode: print the N operators of most CPU time over the timed steps")
     parser.add_argument("--workdir", type=Path, default=None, help="default: a temporary folder")
     args = parser.parse_args(argv)
     candidates = [parse_variant(c) for c in args.candidate] or [("default", {})]
@@ -117,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps:
         if args.steps <= 10:
             parser.error("--steps must exceed 10 (the first 10 iterations are not timed)")
-        step_cost(args.capture, candidates, args.steps, args.threads, args.repeats, workdir, args.preset)
+        step_cost(args.capture, candidates, args.steps, args.threads, args.repeats, workdir, args.preset, args.profile_ops)
         return 0
     print("| candidate | seed | fit s | novel view dB | novel pose dB | fit's held-out dB | its iterate's |\n"
           "|---|---|---|---|---|---|---|", flush=True)

@@ -35,7 +35,8 @@ def main(argv=None) -> int:
         r["heldout"] = {int(k): v for k, v in r["heldout"].items()}
         if args.iterate:  # before the average starts the iterate is what was evaluated
             r["heldout"].update({int(k): v for k, v in r.get("heldout_iterate", {}).items()})
-    runs.sort(key=lambda r: r["name"] != (args.reference or runs[0]["name"]))
+    reference = args.reference or runs[0]["name"]  # read before sorting: the list is empty to a sort's key
+    runs.sort(key=lambda r: r["name"] != reference)
     first = runs[0]
     print(f"| iteration | " + " | ".join(r["name"] for r in runs) + " | " +
           " | ".join(f"{r['name']} - {first['name']}" for r in runs[1:]) + " |")
