@@ -95,7 +95,7 @@ def test_empty_missing_and_non_image_files(tmp_path):
     with pytest.raises(CaptureError, match=r"text\.jpg: image bytes could not be decoded"):
         read_image(tmp_path / "text.jpg")
     (tmp_path / "folder.png").mkdir()
-    with pytest.raises(CaptureError, match=r"folder\.png: cannot read the image file"):
+    with pytest.raises(CaptureError, match=r"folder\.png: is a folder, not a regular file"):
         read_image(tmp_path / "folder.png")
 
 

@@ -14,7 +14,7 @@ import torch
 from numpy.lib import format as npy_format
 
 from pig.body.model import HAND_MEAN_KEYS, NUM_JOINTS, REQUIRED_KEYS, BodyModel, _dense
-from pig.body.npz import read_npz
+from pig.body.npz import read_npz, read_npz_bytes
 from pig.body.params import SmplxParams
 from pig.config import from_dict
 from pig.field.latent_grid import FieldConfig, LatentGrid
@@ -77,11 +77,8 @@ def build_avatar(spec: dict) -> AvatarModel:
     field_cfg = from_dict(FieldConfig, spec["field"], "field spec")
     precond = from_dict(PrecondConfig, spec["precond"], "precond spec")
     source = "body model of the avatar spec"
-    try:
-        with np.load(io.BytesIO(spec["body_model_npz"]), allow_pickle=False) as data:
-            arrays = {key: data[key] for key in BODY_MODEL_KEYS if key in data.files}
-    except (OSError, ValueError) as err:  # not an npz, or pickled objects
-        raise ValueError(f"{source}: not an npz of plain arrays ({err})") from err
+    arrays = read_npz_bytes(spec["body_model_npz"], source, ValueError, "an npz of the body model's plain arrays",
+                            keys=BODY_MODEL_KEYS)
     body_model = BodyModel(arrays, source=source)
     params = SmplxParams(**spec["params"])
     with torch.no_grad():

@@ -4,10 +4,14 @@
 answers a random-bytes file with advice to allow them. Here a file that is not a zip archive is refused
 by its first bytes, members are read as plain arrays, and a member holding pickled objects is only
 unpickled when the caller allows it for that key, and then only into numpy arrays and scipy sparse
-matrices (some SMPL-X files store `J_regressor` so); data preparation, no paper equation.
+matrices (some SMPL-X files store `J_regressor` so). Only the members asked for are read, and each only
+after its declared sizes (the zip's and the .npy header's) agree and stay under a bound, so a small file
+cannot claim gigabytes; data preparation, no paper equation.
 """
 from __future__ import annotations
 
+import io
+import math
 import pickle
 import zipfile
 import zlib
@@ -15,12 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
+from pig.inputs import require_regular_file
+
 ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a local file header, or the end record of an empty archive
 _HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
 _NUMPY_GLOBALS = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
                   ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
                   ("numpy", "ndarray"), ("numpy", "dtype")}
 _SPARSE_CLASSES = {f"{fmt}_{kind}" for fmt in ("csr", "csc", "coo") for kind in ("matrix", "array")}
+# Largest member read, decompressed: an SMPL-X model's largest array (posedirs, float64) is ~120 MB.
+MAX_MEMBER_BYTES = 1 << 30
 
 
 class _ArraysOnlyUnpickler(pickle.Unpickler):
@@ -34,39 +42,79 @@ class _ArraysOnlyUnpickler(pickle.Unpickler):
 
 
 def read_npz(path: str | Path, error: type[Exception], expected: str, keys=None,
-             pickled: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+             pickled: tuple[str, ...] = (), max_bytes: int = MAX_MEMBER_BYTES) -> dict[str, np.ndarray]:
     """Arrays of the npz at `path` (only `keys` if given, those present); `error(message naming the file)` on
     anything that is not a readable npz archive. Keys in `pickled` may hold numpy arrays or scipy sparse
-    matrices stored as pickled objects; other object members are an error."""
+    matrices stored as pickled objects; other object members are an error. A member larger than `max_bytes`
+    decompressed is refused before it is read."""
     path = Path(path)
     try:
+        require_regular_file(path, error, expected)
         with path.open("rb") as handle:
-            head = handle.read(4)
+            return _read_archive(handle, path, error, expected, keys, pickled, max_bytes)
+    except FileNotFoundError:
+        raise error(f"{path}: file not found; expected {expected}") from None
+    except OSError as err:
+        raise error(f"{path}: cannot read the file ({err.strerror or err}); expected {expected}") from None
+
+
+def read_npz_bytes(data: bytes, source: str, error: type[Exception], expected: str, keys=None,
+                   max_bytes: int = MAX_MEMBER_BYTES) -> dict[str, np.ndarray]:
+    """As `read_npz`, for an npz held in memory (a checkpoint's body model); `source` names it in errors."""
+    return _read_archive(io.BytesIO(data), source, error, expected, keys, (), max_bytes)
+
+
+def _read_archive(handle, source, error, expected, keys, pickled, max_bytes) -> dict[str, np.ndarray]:
+    try:
+        head = handle.read(4)
         if head not in ZIP_MAGIC:
             shown = f"starts with {head!r}" if head else "is empty"
-            raise error(f"{path}: not a valid npz archive (the file {shown}); expected {expected}, "
+            raise error(f"{source}: not a valid npz archive (the file {shown}); expected {expected}, "
                         "a zip of .npy arrays as numpy.savez writes")
-        with zipfile.ZipFile(path) as archive:
+        handle.seek(0)
+        with zipfile.ZipFile(handle) as archive:
             members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
             wanted = members if keys is None else [k for k in keys if k in members]
-            return {key: _member(archive, members[key], key in pickled, path, error) for key in wanted}
+            return {key: _member(archive, members[key], key in pickled, source, error, max_bytes) for key in wanted}
     except (OSError, zipfile.BadZipFile, zlib.error, EOFError) as err:
-        raise error(f"{path}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}") from None
+        raise error(f"{source}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}") from None
 
 
-def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path: Path, error: type[Exception]) -> np.ndarray:
+def _check_declared(info: zipfile.ZipInfo, header_bytes: int, shape, dtype: np.dtype, source, error,
+                    max_bytes: int) -> None:
+    """Refuse a member whose .npy header disagrees with the zip's declared size, or that exceeds `max_bytes`."""
+    key = info.filename[:-4]
+    declared = math.prod(shape) * dtype.itemsize
+    if declared > max_bytes:
+        raise error(f"{source}: member '{key}' declares shape {shape} of {dtype} ({declared:,} bytes), more than "
+                    f"the {max_bytes:,} bytes read from one member; not read")
+    if header_bytes + declared != info.file_size:
+        raise error(f"{source}: member '{key}' declares shape {shape} of {dtype} ({declared:,} bytes) but the "
+                    f"archive stores {info.file_size - header_bytes:,} bytes of data for it; corrupt or forged")
+
+
+def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: type[Exception],
+            max_bytes: int) -> np.ndarray:
     key = name[:-4]
+    info = archive.getinfo(name)
+    if info.file_size > max_bytes:
+        raise error(f"{path}: member '{key}' declares {info.file_size:,} bytes decompressed, more than the "
+                    f"{max_bytes:,} bytes read from one member; not read")
     with archive.open(name) as member:
         try:
             version = np.lib.format.read_magic(member)
             if version not in _HEADER_READERS:
                 raise ValueError(f"unsupported .npy format version {version}")
-            _, _, dtype = _HEADER_READERS[version](member)
-            if not dtype.hasobject:
-                with archive.open(name) as again:  # read_array reads the header itself
-                    return np.lib.format.read_array(again, allow_pickle=False)
+            shape, _, dtype = _HEADER_READERS[version](member)
         except ValueError as err:
             raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
+        if not dtype.hasobject:
+            _check_declared(info, member.tell(), shape, dtype, path, error, max_bytes)
+            with archive.open(name) as again:  # read_array reads the header itself
+                try:
+                    return np.lib.format.read_array(again, allow_pickle=False)
+                except ValueError as err:
+                    raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
         if not pickled_ok:
             raise error(f"{path}: '{key}' holds pickled Python objects, which are not loaded (loading them could "
                         "run code); expected a numeric array")

@@ -25,6 +25,8 @@ THUMAN_POSE_KEYS = {
     "left_hand_pose": slice(25, 40),
     "right_hand_pose": slice(40, 55),
 }
+THUMAN_KEYS = ("betas", "transl", "expression", *THUMAN_POSE_KEYS)  # the members `from_thuman` reads
+PARAMS_KEYS = ("poses", "betas", "expression", "transl", "frames")  # the preprocessed smplx.npz
 
 
 class ParamsError(ValueError):
@@ -57,7 +59,7 @@ class SmplxParams:
     def load(cls, path: str | Path) -> tuple["SmplxParams", np.ndarray]:
         """Read a preprocessed `smplx.npz`; returns the parameters and their frame ids."""
         arrays = _read_npz(path)
-        _require(arrays, ("poses", "betas", "expression", "transl", "frames"), path)
+        _require(arrays, PARAMS_KEYS, path)
         poses = _array(arrays, "poses", path)
         n = poses.shape[0]
         _check_shape(poses, (n, NUM_JOINTS * 3), "poses", path)
@@ -74,7 +76,7 @@ def _read_npz(path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise ParamsError(f"{path}: body parameter file not found")
-    return read_npz(path, ParamsError, "SMPL-X body parameters")
+    return read_npz(path, ParamsError, "SMPL-X body parameters", keys=PARAMS_KEYS)
 
 
 def _require(arrays, keys, path) -> None:

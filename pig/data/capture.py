@@ -25,6 +25,7 @@ from pig.data.images import read_image
 from pig.data.raw import CaptureError
 from pig.data.rectify import composite
 from pig.data.splits import SPLITS
+from pig.inputs import require_regular_file
 from pig.progress import progress_bar
 
 CAMERA_KEYS = ("K", "R", "T", "width", "height")
@@ -202,8 +203,8 @@ class Capture:
                                f"{camera} has no image and mask for frame {frame})")
         path = self.root / kind / camera / self._files[camera][kind][frame]
         flag = cv2.IMREAD_COLOR if kind == "images" else cv2.IMREAD_GRAYSCALE
-        data = read_image(path, flag)
         cam = self.cameras[camera]
+        data = read_image(path, flag, cam.width * cam.height)
         if data.shape[:2] != (cam.height, cam.width):
             raise CaptureError(f"{path}: image is {data.shape[1]}x{data.shape[0]}, cameras.json says "
                                f"{cam.width}x{cam.height}")
@@ -240,6 +241,7 @@ def _frame_files(folder: Path, suffixes: tuple[str, ...]) -> dict[int, str]:
 
 def _json(path: Path) -> dict:
     try:
+        require_regular_file(path, CaptureError, "a JSON file of the preprocessed capture")
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise CaptureError(f"{path}: file not found (an incomplete preprocessed capture? rerun preprocess)") from None

@@ -13,9 +13,10 @@ import cv2
 import numpy as np
 
 from pig.body.npz import read_npz
-from pig.body.params import ParamsError, SmplxParams, from_thuman
+from pig.body.params import THUMAN_KEYS, ParamsError, SmplxParams, from_thuman
 from pig.data.images import read_image
 from pig.data.raw import CaptureError, RawCamera
+from pig.inputs import require_regular_file
 
 CALIBRATION = "calibration.json"
 PARAMS = "smpl_params.npz"
@@ -50,7 +51,7 @@ class Thuman4Capture:
         self._check_camera_folders()
         params_path = self.source / PARAMS
         try:
-            arrays = read_npz(params_path, ParamsError, PARAMS_EXPECTED)
+            arrays = read_npz(params_path, ParamsError, PARAMS_EXPECTED, keys=THUMAN_KEYS)
             self.params: SmplxParams = from_thuman(arrays, str(params_path))
         except ParamsError as err:
             raise CaptureError(str(err)) from None
@@ -72,13 +73,13 @@ class Thuman4Capture:
 
     def read_image(self, camera: str, frame: int) -> np.ndarray:
         path = self._path("images", camera, frame)
-        image = read_image(path, cv2.IMREAD_COLOR)
+        image = read_image(path, cv2.IMREAD_COLOR, self._pixels(camera))
         self._check_size(image, camera, path)
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
     def read_mask(self, camera: str, frame: int) -> np.ndarray:
         path = self._path("masks", camera, frame)
-        mask = read_image(path, cv2.IMREAD_GRAYSCALE)
+        mask = read_image(path, cv2.IMREAD_GRAYSCALE, self._pixels(camera))
         self._check_size(mask, camera, path)
         return mask
 
@@ -94,6 +95,10 @@ class Thuman4Capture:
             raise CaptureError(f"{self.source / kind / camera}: no usable file for frame {frame} "
                                f"(absent or listed as missing)")
         return path
+
+    def _pixels(self, camera: str) -> int:
+        """The bound on an image's declared size before decoding: the camera's own."""
+        return self.cameras[camera].width * self.cameras[camera].height
 
     def _check_size(self, image: np.ndarray, camera: str, path: Path) -> None:
         cam = self.cameras[camera]
@@ -147,8 +152,9 @@ class Thuman4Capture:
     def _read_missing(self, kind: str) -> set[tuple[str, int]]:
         """(camera, frame) pairs listed in a missing-files list; paths may use / or \\ separators."""
         path = self.source / MISSING_LISTS[kind]
-        if not path.is_file():
+        if not path.exists():
             return set()
+        require_regular_file(path, CaptureError, "a list of missing files, one path a line")
         pairs = set()
         for number, line in enumerate(path.read_text().splitlines(), start=1):
             line = line.strip()
@@ -166,6 +172,7 @@ class Thuman4Capture:
 def read_calibration(path: Path) -> dict[str, RawCamera]:
     """calibration.json -> cameras in file order; K and R flat (9) or 3x3, T of 3, imgSize [W, H]."""
     try:
+        require_regular_file(path, CaptureError, "a calibration JSON file")
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise CaptureError(f"{path}: calibration file not found") from None
