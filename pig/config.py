@@ -3,11 +3,14 @@
 Each module owns the dataclass of its section; `load_section` fills it from a preset, rejecting
 unknown keys and wrong types with the file and key named, so a typo never silently uses a default.
 YAML numbers follow YAML 1.2 (`1e8` and `1.0e8` are floats) rather than PyYAML's YAML 1.1, and digit strings
-with a leading zero (`0165_01`, `0206`) stay strings, as sequence and camera ids do.
+with a leading zero (`0165_01`, `0206`) stay strings, as sequence and camera ids do. A field annotated with
+`Bounds` (`Annotated[int, Bounds(gt=0)]`) is range-checked on load, NaN and infinities refused; a document
+whose aliases expand beyond `MAX_YAML_NODES` values (a "billion laughs" file) is refused before it is built.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import types
 import typing
@@ -16,6 +19,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import yaml
 
+from pig.inputs import require_regular_file
+
 if TYPE_CHECKING:
     import torch
 
@@ -23,10 +28,29 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_PRESET = "cpu-demo"  # config/presets/cpu-demo.yaml: the whole default target on two CPU cores in minutes
 
 T = TypeVar("T")
+MAX_YAML_NODES = 100_000  # values of a YAML document with its aliases expanded; a preset holds a few hundred
 
 
 class ConfigError(ValueError):
     """A configuration file or value is not what the pipeline expects."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Bounds:
+    """The range of a numeric config field, for `Annotated[int, Bounds(gt=0)]`; NaN and infinities never pass."""
+
+    gt: float | None = None
+    ge: float | None = None
+    le: float | None = None
+
+    def check(self, value: float, where: str) -> None:
+        ok = math.isfinite(value) and (self.gt is None or value > self.gt) and (self.ge is None or value >= self.ge) \
+            and (self.le is None or value <= self.le)
+        if not ok:
+            wanted = [f"{op} {limit:g}" for op, limit in (("above", self.gt), ("at least", self.ge),
+                                                          ("at most", self.le)) if limit is not None]
+            kind = "an integer" if isinstance(value, int) else "a finite number"
+            raise ConfigError(f"{where}: expected {kind} {' and '.join(wanted)}, found {value!r}")
 
 
 class _Loader(yaml.SafeLoader):
@@ -34,7 +58,28 @@ class _Loader(yaml.SafeLoader):
 
     PyYAML resolves YAML 1.1, where `1e8` and `1.0e8` are strings (the exponent needs a dot and a sign), `0165`
     is octal 117, `0165_01` is 7489, `1_000` is 1000 and `1:30` is 90; here the last four are strings.
+    The composed document's size with aliases expanded is bounded (`MAX_YAML_NODES`).
     """
+
+    def compose_document(self):
+        node = super().compose_document()
+        size = _expanded_size(node, {})
+        if size > MAX_YAML_NODES:
+            raise ConfigError(f"YAML aliases expand the document to {size:,} values, more than the "
+                              f"{MAX_YAML_NODES:,} allowed (an alias bomb?); refused")
+        return node
+
+
+def _expanded_size(node: yaml.Node, sizes: dict[int, int]) -> int:
+    """Values in `node` with every alias expanded, counted once per node (linear time); a recursive alias
+    counts once."""
+    if id(node) not in sizes:
+        sizes[id(node)] = 1
+        if isinstance(node, yaml.SequenceNode):
+            sizes[id(node)] = 1 + sum(_expanded_size(child, sizes) for child in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            sizes[id(node)] = 1 + sum(_expanded_size(k, sizes) + _expanded_size(v, sizes) for k, v in node.value)
+    return sizes[id(node)]
 
 
 _INT, _FLOAT = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
@@ -94,11 +139,18 @@ def parse_yaml(text: str) -> Any:
 def load_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
+        require_regular_file(path, ConfigError, "a YAML file")
         data = parse_yaml(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    except ConfigError as err:  # the loader's refusal does not know the file
+        if str(err).startswith(f"{path}:"):
+            raise
+        raise ConfigError(f"{path}: {err}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: values nested too deeply to read (thousands of levels); refused") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -154,7 +206,7 @@ def from_dict(cls: type[T], values: dict[str, Any], where: str = "config") -> T:
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; expected some of {sorted(fields)}")
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)
     kwargs = {name: _coerce(hints[name], value, f"{where}.{name}") for name, value in values.items()}
     return cls(**kwargs)
 
@@ -163,6 +215,12 @@ def _coerce(hint: Any, value: Any, where: str) -> Any:
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)
     if hint is Any:
+        return value
+    if origin is typing.Annotated:
+        value = _coerce(args[0], value, where)
+        for bounds in (a for a in hint.__metadata__ if isinstance(a, Bounds)):
+            if value is not None:
+                bounds.check(value, where)
         return value
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:

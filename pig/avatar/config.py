@@ -5,17 +5,19 @@ Defaults are the paper's (Section 3.6); the latent grid is configured in section
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
+
+from pig.config import Bounds
 
 
 @dataclass
 class AvatarConfig:
-    num_anchors: int = 100_000
+    num_anchors: Annotated[int, Bounds(ge=1, le=10_000_000)] = 100_000  # at most 100 times the paper's
     levels: int = 4  # nested LOD subsets by halving
     anchor_seed: int = 0
     sh_degree: int = 3
     hidden_layers: int = 5  # colour and shape decoders
-    hidden_width: int = 512
+    hidden_width: Annotated[int, Bounds(ge=1, le=8192)] = 512
     single_mlp: bool = False  # ablation: one MLP decodes colour and shape together
     offsets: bool = True  # ablation `no_offsets`: no per-timestep position residual (Eq. 10)
     # Axes of the decoded position residual d mu (Eq. 10 leaves them open): `world`, or `local`, the anchor's

@@ -23,7 +23,7 @@ import time
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Annotated, Callable, Literal
 
 import numpy as np
 import torch
@@ -36,7 +36,7 @@ from pig.avatar.config import AvatarConfig
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
-from pig.config import DEFAULT_PRESET, ConfigError, load_preset, load_section, resolve_device
+from pig.config import DEFAULT_PRESET, Bounds, ConfigError, load_preset, load_section, resolve_device
 from pig.data.capture import Capture
 from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
@@ -62,8 +62,8 @@ PRECISIONS = ("float32", "tf32", "bf16")
 class FitConfig:
     """Preset section `fit`; defaults are the paper's (Section 3.6) with every speed lever off."""
 
-    iterations: int = 100_000
-    views: int = 4  # cameras per timestep per iteration
+    iterations: Annotated[int, Bounds(ge=1)] = 100_000
+    views: Annotated[int, Bounds(ge=1)] = 4  # cameras per timestep per iteration
     timesteps: int = 5  # timesteps per iteration
     lr_decoders: float = 1e-3
     lr_refine: float = 1e-4
@@ -88,7 +88,7 @@ class FitConfig:
     band_radius_px: float = 3.0  # silhouette band radius at `band_reference_height` rows (THuman4)
     band_reference_height: int = 1150
     sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
-    eval_every: int = 1000  # held-out novel-view PSNR every this many iterations (and at the end)
+    eval_every: Annotated[int, Bounds(ge=1)] = 1000  # held-out novel-view PSNR every this many iterations (and at the end)
     eval_frames: int = 4  # training frames rendered from the novel-view cameras
     checkpoint_minutes: float = 5.0
     # Stop after this many seconds of training (the held-out evaluations not counted), before `iterations`

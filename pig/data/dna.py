@@ -16,6 +16,10 @@ Layout choices that no real file has confirmed (UNVERIFIED), and how they are ha
 - `SMPLx/betas`: (N, 10) in the released files (the official reader counts frames by its rows),
   (1, 10) or (10,) accepted too; all frames use row 0, with a warning when rows differ.
 - `SMPLx/scale` is ignored, as in the dataset's official loader; a value other than 1 is warned about.
+
+Reads stay inside the two files and bounded: external links and datasets whose data lives in other files
+(external raw storage, virtual datasets) are refused, only the datasets the reader needs are read, and each
+only after its declared shape and type fit what the capture expects.
 """
 from __future__ import annotations
 
@@ -30,8 +34,9 @@ import numpy as np
 
 from pig.body.params import ParamsError, SmplxParams, from_dna
 from pig.body.skeleton import LEFT_HAND, RIGHT_HAND
-from pig.data.images import decode_image
+from pig.data.images import MAX_PIXELS, decode_image
 from pig.data.raw import CaptureError, RawCamera
+from pig.inputs import require_regular_file
 
 if TYPE_CHECKING:
     from pig.body.model import BodyModel
@@ -41,6 +46,11 @@ CALIBRATION = "Camera_Parameter"
 MASKS = "Mask"
 SMPLX = "SMPLx"
 ANNOTS_SUFFIX = "_annots"
+SMPLX_KEYS = ("betas", "fullpose", "transl", "expression", "scale")  # the datasets of SMPLx that are read
+MAX_FRAMES = 1_000_000  # bound on SMPLx rows when no camera group states num_frame
+SMPLX_ROW = 400  # values per frame of an SMPLx dataset: fullpose has 165, betas up to 300
+# An encoded image holds at most this many bytes a pixel: 16-bit RGBA PNG stored, plus headers.
+ENCODED_BYTES_PER_PIXEL = 8
 
 
 def locate_smc(root: str | Path, sequence: str | None = None) -> tuple[Path, Path]:
@@ -87,8 +97,32 @@ def _where(handle: h5py.File, path: str) -> str:
     return f"{handle.filename}:/{path.strip('/')}"
 
 
+def _check_links(handle: h5py.File, path: str, depth: int = 0) -> None:
+    """CaptureError if any link on `path` leads out of the file (an external link), also through soft links."""
+    parts = [p for p in path.split("/") if p]
+    for end in range(1, len(parts) + 1):
+        prefix = "/".join(parts[:end])
+        link = handle.get(prefix, getlink=True)
+        if isinstance(link, h5py.ExternalLink):
+            raise CaptureError(f"{_where(handle, prefix)}: an external link to {link.filename}:{link.path}; links "
+                               "out of the file are not followed (a capture's data lives in its own files)")
+        if isinstance(link, h5py.SoftLink):
+            if depth > 8:
+                raise CaptureError(f"{_where(handle, prefix)}: soft links nested too deep")
+            _check_links(handle, link.path, depth + 1)
+
+
+def _check_storage(handle: h5py.File, path: str, dataset: h5py.Dataset) -> None:
+    """CaptureError if the dataset's values live outside the file (external raw storage or a virtual dataset)."""
+    if dataset.id.get_create_plist().get_external_count() > 0 or dataset.is_virtual:
+        raise CaptureError(f"{_where(handle, path)}: the dataset's values are stored in other files (external "
+                           "storage or a virtual dataset); they are not read (a capture's data lives in its own files)")
+
+
 def _node(handle: h5py.File, path: str, kind: type):
-    """The group or dataset at `path`, or a CaptureError naming file and internal path."""
+    """The group or dataset at `path`, or a CaptureError naming file and internal path; never through a link
+    out of the file, nor a dataset stored in other files."""
+    _check_links(handle, path)
     node = handle.get(path)
     if node is None:
         parent = path.rsplit("/", 1)[0] if "/" in path else ""
@@ -97,7 +131,20 @@ def _node(handle: h5py.File, path: str, kind: type):
         raise CaptureError(f"{_where(handle, path)}: missing {kind.__name__.lower()}; found {shown}")
     if not isinstance(node, kind):
         raise CaptureError(f"{_where(handle, path)}: expected an HDF5 {kind.__name__.lower()}")
+    if isinstance(node, h5py.Dataset):
+        _check_storage(handle, path, node)
     return node
+
+
+def _read(handle: h5py.File, path: str, max_size: int, expected: str) -> np.ndarray:
+    """The numeric dataset at `path`, read only if it declares at most `max_size` elements."""
+    dataset = _node(handle, path, h5py.Dataset)
+    if dataset.dtype.kind not in "biuf":
+        raise CaptureError(f"{_where(handle, path)}: expected {expected} (numbers), found {dataset.dtype} values")
+    if dataset.size > max_size:
+        raise CaptureError(f"{_where(handle, path)}: declares shape {dataset.shape} ({dataset.size:,} values), more "
+                           f"than the {max_size:,} expected ({expected}); not read")
+    return np.asarray(dataset[()])
 
 
 def _attr(handle: h5py.File, path: str, name: str):
@@ -113,13 +160,18 @@ def _camera_key(group: h5py.Group, cam: int, padded: bool) -> str:
     return other if preferred not in group and other in group else preferred
 
 
-def _decode(handle: h5py.File, path: str, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
-    """Decode the 1-D uint8 encoded image at `path` (BGR for IMREAD_COLOR) to a uint8 array."""
-    data = _node(handle, path, h5py.Dataset)[()]
-    if data.dtype != np.uint8 or data.ndim != 1:
+def _decode(handle: h5py.File, path: str, flags: int = cv2.IMREAD_COLOR, max_pixels: int = MAX_PIXELS) -> np.ndarray:
+    """Decode the 1-D uint8 encoded image at `path` (BGR for IMREAD_COLOR) to a uint8 array, declaring at most
+    `max_pixels` pixels; the encoded bytes are read only if they could be such an image."""
+    dataset = _node(handle, path, h5py.Dataset)
+    if dataset.dtype != np.uint8 or dataset.ndim != 1:
         raise CaptureError(f"{_where(handle, path)}: expected encoded image bytes (1-D uint8), "
-                           f"found {data.dtype} array of shape {data.shape}")
-    image = decode_image(data, _where(handle, path), flags)
+                           f"found {dataset.dtype} array of shape {dataset.shape}")
+    limit = ENCODED_BYTES_PER_PIXEL * max_pixels + 65536
+    if dataset.size > limit:
+        raise CaptureError(f"{_where(handle, path)}: {dataset.size:,} encoded bytes, more than an image of at most "
+                           f"{max_pixels:,} pixels takes ({limit:,}); not read")
+    image = decode_image(dataset[()], _where(handle, path), flags, max_pixels)
     if image.dtype != np.uint8:
         raise CaptureError(f"{_where(handle, path)}: expected an 8-bit image, found {image.dtype}")
     return image
@@ -180,7 +232,9 @@ class DnaCapture:
         self.actor = {k: _plain(v) for k, v in main.attrs.items()}
 
         smplx = _node(annots, SMPLX, h5py.Group)
-        arrays = {k: np.asarray(smplx[k][()]) for k in smplx if isinstance(smplx[k], h5py.Dataset)}
+        rows = self._stated_frames()
+        arrays = {k: _read(annots, f"{SMPLX}/{k}", max(rows, 1) * SMPLX_ROW, f"at most {SMPLX_ROW} values a frame "
+                           f"for {rows} frames") for k in SMPLX_KEYS if k in smplx}
         try:
             self._file_params = from_dna(arrays, _where(annots, SMPLX))
         except ParamsError as err:
@@ -230,7 +284,7 @@ class DnaCapture:
 
     def read_image(self, camera: str, frame: int) -> np.ndarray:
         path = f"{self._group(camera)}/{camera}/color/{frame}"
-        image = self._sized(_decode(self._file("main"), path), camera, "main", path)
+        image = self._sized(_decode(self._file("main"), path, max_pixels=self._pixels(camera)), camera, "main", path)
         cam = self.cameras[camera]
         rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)  # ~60x faster than a reversed-view copy at 5 MP
         if self.apply_color_correction and cam.color_correction is not None:
@@ -243,7 +297,7 @@ class DnaCapture:
         self._group(camera)
         path = f"{MASKS}/{self._mask_camera(camera)}/mask/{frame}"
         # IMREAD_UNCHANGED: a one-channel mask is not expanded to three channels only to be reduced again.
-        image = _decode(self._file("annots"), path, cv2.IMREAD_UNCHANGED)
+        image = _decode(self._file("annots"), path, cv2.IMREAD_UNCHANGED, self._pixels(camera))
         return matte(self._sized(image, camera, "annots", path))
 
     # -- helpers ------------------------------------------------------------------------------
@@ -268,6 +322,7 @@ class DnaCapture:
         if which not in self._handles:
             path = self.main_path if which == "main" else self.annots_path
             try:
+                require_regular_file(path, CaptureError, "a DNA-Rendering .smc (HDF5) file")
                 self._handles[which] = h5py.File(path, "r")
             except OSError as err:
                 raise CaptureError(f"{path}: not a readable HDF5 (.smc) file: {err}") from None
@@ -275,6 +330,7 @@ class DnaCapture:
 
     def _keys(self, which: str, path: str) -> set[str]:
         if (which, path) not in self._frame_keys:
+            _check_links(self._file(which), path)
             node = self._file(which).get(path)
             self._frame_keys[(which, path)] = set(node.keys()) if isinstance(node, h5py.Group) else set()
         return self._frame_keys[(which, path)]
@@ -287,6 +343,20 @@ class DnaCapture:
     def _mask_camera(self, camera: str) -> str:
         masks = self._file("annots").get(MASKS)
         return _camera_key(masks, int(camera), padded=False) if isinstance(masks, h5py.Group) else camera
+
+    def _pixels(self, camera: str) -> int:
+        return self.cameras[camera].width * self.cameras[camera].height
+
+    def _stated_frames(self) -> int:
+        """The frame count the first camera group's `num_frame` states (checked against SMPLx later), else
+        MAX_FRAMES: the bound on the SMPLx rows read."""
+        main = self._file("main")
+        for group in CAMERA_GROUPS:
+            if group in main and "num_frame" in main[group].attrs:
+                count = np.asarray(main[group].attrs["num_frame"]).ravel()
+                if count.size and np.issubdtype(count.dtype, np.integer) and 0 < count[0] <= MAX_FRAMES:
+                    return int(count[0])
+        return MAX_FRAMES
 
     def _sized(self, image: np.ndarray, camera: str, which: str, path: str) -> np.ndarray:
         cam = self.cameras[camera]
@@ -325,7 +395,7 @@ class DnaCapture:
         frames = sorted(_node(main, color, h5py.Group).keys(), key=lambda k: int(k) if k.isdigit() else -1)
         if not frames:
             raise CaptureError(f"{_where(main, color)}: no frames")
-        height, width = _decode(main, f"{color}/{frames[0]}").shape[:2]
+        height, width = _decode(main, f"{color}/{frames[0]}", max_pixels=int(np.prod(resolution))).shape[:2]
         if sorted((height, width)) != sorted(int(r) for r in resolution):
             raise CaptureError(f"{_where(main, f'{color}/{frames[0]}')}: image is {width}x{height} (WxH) but "
                                f"{_where(main, group)} attribute resolution is {resolution.tolist()}")
@@ -338,7 +408,11 @@ class DnaCapture:
         _node(annots, base, h5py.Group)
 
         def matrix(name: str, sizes: tuple[int, ...]) -> np.ndarray:
-            value = np.asarray(_node(annots, f"{base}/{name}", h5py.Dataset)[()], dtype=np.float64)
+            dataset = _node(annots, f"{base}/{name}", h5py.Dataset)
+            if dataset.size not in sizes or dataset.dtype.kind not in "biuf":
+                raise CaptureError(f"{_where(annots, f'{base}/{name}')}: expected {' or '.join(map(str, sizes))} "
+                                   f"finite numbers, found {dataset.dtype} values of shape {dataset.shape}")
+            value = np.asarray(dataset[()], dtype=np.float64)
             if value.size not in sizes or not np.all(np.isfinite(value)):
                 raise CaptureError(f"{_where(annots, f'{base}/{name}')}: expected {' or '.join(map(str, sizes))} "
                                    f"finite values, found shape {value.shape}")
@@ -354,7 +428,7 @@ class DnaCapture:
         world_to_cam = np.linalg.inv(cam_to_world)
         correction = None
         if "Color_Calibration" in annots[base]:
-            correction = _color_correction(annots[base]["Color_Calibration"][()],
+            correction = _color_correction(_read(annots, f"{base}/Color_Calibration", 9, "a 3x3 matrix or 3 gains"),
                                            _where(annots, base + "/Color_Calibration"), self.apply_color_correction)
         elif self.apply_color_correction:
             raise CaptureError(f"{_where(annots, base)}: color_correction requested but no Color_Calibration")

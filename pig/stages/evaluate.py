@@ -16,13 +16,13 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import pandas as pd
 import torch
 
-from pig.config import load_preset, load_section, resolve_device
+from pig.config import Bounds, load_preset, load_section, resolve_device
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
 from pig.data.raw import CaptureError
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
@@ -47,9 +47,9 @@ class EvaluateConfig:
     lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
     inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: hub cache or /tmp
     fid_min_images: int = DEFAULT_MIN_IMAGES  # FID over fewer images per set is flagged as biased (still computed)
-    batch_size: int = 8
+    batch_size: Annotated[int, Bounds(ge=1)] = 8
     device: str = "auto"  # "auto": CUDA when available
-    timing_frames: int = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
+    timing_frames: Annotated[int, Bounds(ge=1)] = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
     # Frames of a split, evenly spaced with its first and last, on which a synthetic capture's geometry error is
     # measured: each costs an exact nearest-surface query per splat. The drift follows all frames.
     geometry_frames: int = 4

@@ -18,14 +18,14 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
 import torch
 
 from pig.body.model import BodyModel, BodyModelError
-from pig.config import ConfigError, load_preset, load_section, load_yaml, named_config
+from pig.config import Bounds, ConfigError, load_preset, load_section, load_yaml, named_config
 from pig.data.capture import MASK_SUFFIX
 from pig.data.formats import FORMATS, capture_format, open_capture
 from pig.data.ground_truth import GT_MESHES, TrueMeshes
@@ -45,8 +45,9 @@ HELD_OUT = ("novel_view", "novel_pose")
 
 @dataclass
 class PreprocessConfig:
-    scale: float = 1.0  # resize factor applied after undistortion
-    max_side: int | None = None  # cap on the longer output side in pixels (None: no cap)
+    scale: Annotated[float, Bounds(gt=0)] = 1.0  # resize factor applied after undistortion
+    # Cap on the longer output side in pixels (None: no cap); smaller images hold too few pixels to check.
+    max_side: Annotated[int, Bounds(ge=16)] | None = None
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # RGB in [0, 1] outside the mask
     # Threads decoding, undistorting and encoding frames; None: one per usable core. Threads suffice: a worker
     # holds the GIL for under 3 % of its time, the rest is OpenCV, numpy and file I/O (benchmarks/preprocess.py).
@@ -57,13 +58,13 @@ class PreprocessConfig:
     heldout_encoding: Literal["png", "jpeg"] = "png"
     jpeg_quality: int = 95  # 4:4:4 chroma; 42.8 dB inside the mask against the float result at 1330 x 1150
     png_compression: int = 1  # zlib level of the written PNGs (1: fast; 6 saves 10 % at twice the time)
-    check_frames: int = 3  # frames per camera sampled for the projection check
+    check_frames: Annotated[int, Bounds(ge=1)] = 3  # frames per camera sampled for the projection check
     # Tolerances of the check's IoU at the body's depth (pig/data/projection_check.py): body outside the mask
     # (calibration and fitting error) and mask outside the body (loose garments, hair). The synthetic capture's
     # skirt scores 0.905..0.956 with a symmetric 5 cm and 0.995..1.0 with 5 / 20 cm (benchmarks/NOTES.md).
     check_body_tolerance_m: float = 0.05
     check_garment_tolerance_m: float = 0.20
-    min_iou: float = 0.9  # every camera must reach this tolerant IoU
+    min_iou: Annotated[float, Bounds(gt=0, le=1)] = 0.9  # every camera must reach this tolerant IoU
     mask_resize: Literal["area", "nearest"] = "area"  # mask resampling; "nearest" as DNA-Rendering peers do
     # Dataset name -> overrides of the keys above, e.g. dna: {scale: 0.5, mask_resize: nearest} (peers' protocol).
     datasets: dict[str, dict] = field(default_factory=dict)
