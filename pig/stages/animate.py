@@ -6,6 +6,7 @@ Writes --output/animation.webm (VP9, browser-playable), animation.json, and with
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import torch
@@ -14,6 +15,26 @@ from pig.avatar.animation import Orbit, animate
 from pig.config import load_preset, load_section
 from pig.render.api import RasterizerConfig
 from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
+
+MAX_FPS = 1000.0
+MAX_SECONDS = 3600.0  # an hour of a still pose; motions bring their own length
+SIDE_RANGE = (16, 8192)  # orbit image sides in pixels: VP9 and the renderer's memory
+
+
+def _in_range(kind: type, low: float, high: float, low_open: bool = False):
+    """An argparse type: `kind` of `text` within [low, high] ((low, high] with `low_open`), finite."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
+                                             f"found {text!r}") from None
+        if not math.isfinite(value) or value > high or value < low or (low_open and value == low):
+            bound = f"above {low:g}" if low_open else f"at least {low:g}"
+            raise argparse.ArgumentTypeError(f"expected a finite value {bound} and at most {high:g}, found {text}")
+        return value
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,15 +49,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--capture", type=Path, default=None, help="preprocessed capture the --camera belongs to")
     parser.add_argument("--lod", type=int, default=None, help="level of detail (0 = coarsest; default: the finest)")
     parser.add_argument("--frames", default=None, help="motion frames START:STOP[:STEP] (default: all)")
-    parser.add_argument("--fps", type=float, default=None, help="resample the motion to this frame rate (default: its own)")
+    parser.add_argument("--fps", type=_in_range(float, 0, MAX_FPS, low_open=True), default=None,
+                        help="resample the motion to this frame rate (default: its own)")
     parser.add_argument("--up", default=None, choices=["+x", "-x", "+y", "-y", "+z", "-z"],
                         help="the capture's up axis (default: inferred from the avatar's training poses)")
     parser.add_argument("--orbit-radius", type=float, default=None, help="metres (default: fit the subject in view)")
     parser.add_argument("--orbit-height", type=float, default=Orbit.height, help="metres above the subject's centre")
     parser.add_argument("--orbit-period", type=float, default=Orbit.period_s, help="seconds per revolution")
-    parser.add_argument("--size", type=int, nargs=2, default=(Orbit.width, Orbit.height_px), metavar=("WIDTH", "HEIGHT"),
+    parser.add_argument("--size", type=_in_range(int, *SIDE_RANGE), nargs=2, default=(Orbit.width, Orbit.height_px),
+                        metavar=("WIDTH", "HEIGHT"),
                         help="orbit camera image size in pixels")
-    parser.add_argument("--seconds", type=float, default=None, help="length of a still pose's video (default: one revolution)")
+    parser.add_argument("--seconds", type=_in_range(float, 0, MAX_SECONDS, low_open=True), default=None,
+                        help="length of a still pose's video (default: one revolution)")
     parser.add_argument("--png", action="store_true", help="also write frames/NNNNN.png (RGBA)")
     parser.add_argument("--exr", action="store_true", help="also write frames/NNNNN.exr (R, G, B, A, depth Z)")
     add_preset_argument(parser, "its rasterizer section")
