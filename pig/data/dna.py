@@ -36,6 +36,7 @@ from pig.body.params import ParamsError, SmplxParams, from_dna
 from pig.body.skeleton import LEFT_HAND, RIGHT_HAND
 from pig.data.images import MAX_PIXELS, decode_image
 from pig.data.raw import CaptureError, RawCamera
+from pig.data.rectify import check_matte
 from pig.inputs import require_regular_file
 
 if TYPE_CHECKING:
@@ -298,7 +299,7 @@ class DnaCapture:
         path = f"{MASKS}/{self._mask_camera(camera)}/mask/{frame}"
         # IMREAD_UNCHANGED: a one-channel mask is not expanded to three channels only to be reduced again.
         image = _decode(self._file("annots"), path, cv2.IMREAD_UNCHANGED, self._pixels(camera))
-        return matte(self._sized(image, camera, "annots", path))
+        return check_matte(matte(self._sized(image, camera, "annots", path)), _where(self._file("annots"), path))
 
     # -- helpers ------------------------------------------------------------------------------
 

@@ -6,7 +6,9 @@ world-to-camera) before any fitting; data preparation, no paper equation.
 Score. The body silhouette B lies inside the clothed person's mask M up to calibration and fitting error,
 while loose garments and hair extend M well beyond B. So the pass/fail score is a tolerant IoU with one
 tolerance per direction: body pixels count as agreeing within r_b of the mask, mask pixels within r_g of
-the body, r = max(MIN_RADIUS_PX, f * tolerance_m / z), z the median depth of the body in that camera:
+the body, r = max(MIN_RADIUS_PX, f * tolerance_m / max(z, MIN_DEPTH_M)), z the median depth of the body in
+that camera (floored: nearer, as with a camera inside the subject, the radius would grow without bound and
+cover the whole image, so that any calibration passed):
     IoU_tol = (|B u M| - |B \\ D_rb(M)| - |M \\ D_rg(B)|) / |B u M|,  D_r = dilation by a disc of radius r,
 summed over the sampled frames. The plain IoU |B n M| / |B u M| is reported beside it.
 """
@@ -19,6 +21,7 @@ import numpy as np
 
 NEAR = 0.01  # metres; triangles with a vertex closer than this to the camera plane are not drawn
 MIN_RADIUS_PX = 1.5  # rasterisation and resampling put silhouette edges up to about a pixel apart
+MIN_DEPTH_M = 1.0  # full-body capture cameras stand farther from the body than this
 _SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
 
 
@@ -95,14 +98,18 @@ def camera_score(view: View, vertices: list[np.ndarray], masks: list[np.ndarray]
         # Tolerances in pixels at the body's depth; a body behind the camera fails whatever the radius.
         depth = float(np.median(in_front)) if in_front.size else np.inf
         depths.append(depth)
-        radii = [max(MIN_RADIUS_PX, view.K[0, 0] * t / depth) for t in (tolerance.body_m, tolerance.garment_m)]
-        counts += overlap_counts(silhouette(verts, faces, view), mask, *radii)
-    depth = float(np.median(depths))
+        counts += overlap_counts(silhouette(verts, faces, view), mask, *_radii(view, tolerance, depth))
     scores = {"iou": float("nan"), "raw_iou": float("nan")}
     if counts[1] > 0:
         scores = {"iou": counts[2] / counts[1], "raw_iou": counts[0] / counts[1]}
-    return {**scores, "body_radius_px": max(MIN_RADIUS_PX, view.K[0, 0] * tolerance.body_m / depth),
-            "garment_radius_px": max(MIN_RADIUS_PX, view.K[0, 0] * tolerance.garment_m / depth)}
+    body_radius, garment_radius = _radii(view, tolerance, float(np.median(depths)))
+    return {**scores, "body_radius_px": body_radius, "garment_radius_px": garment_radius}
+
+
+def _radii(view: View, tolerance: Tolerance, depth: float) -> tuple[float, float]:
+    """(body, garment) tolerance radii in pixels at the body's median `depth` (floored at MIN_DEPTH_M)."""
+    depth = max(depth, MIN_DEPTH_M)
+    return tuple(max(MIN_RADIUS_PX, view.K[0, 0] * t / depth) for t in (tolerance.body_m, tolerance.garment_m))
 
 
 def inverted(view: View) -> View:
@@ -125,8 +132,9 @@ def check_projection(views: dict[str, View], frames: dict[str, list[int]], masks
     failing = [c for c, s in scores.items() if not s["iou"] >= min_iou]
     report = {
         "definition": "tolerant IoU: body pixels within body_radius_px of the mask and mask pixels within "
-                      "garment_radius_px of the body count as agreeing (radius = f * tolerance / median body depth, "
-                      f"at least {MIN_RADIUS_PX} px); raw_iou is the plain IoU",
+                      "garment_radius_px of the body count as agreeing (radius = f * tolerance / median body depth, the "
+                      f"depth at least {MIN_DEPTH_M} m, the radius at least {MIN_RADIUS_PX} px); raw_iou is the "
+                      "plain IoU",
         "tolerance_m": asdict(tolerance),
         "min_iou": min_iou,
         "cameras": scores,

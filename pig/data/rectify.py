@@ -8,9 +8,21 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pig.data.raw import RawCamera
+from pig.data.raw import CaptureError, RawCamera
 
 MASK_THRESHOLD = 128  # THuman4 mattes: foreground = value > 128 (FORMATS.md)
+
+
+def check_matte(matte: np.ndarray, source: str) -> np.ndarray:
+    """`matte` unchanged, or CaptureError naming `source` when it has pixels but none above MASK_THRESHOLD (a
+    mask saved as 0/1 instead of 0/255 reads as empty, and would fail the projection check as if the
+    calibration were wrong). An all-black matte passes: the person may be out of view in one frame."""
+    peak = int(matte.max()) if matte.size else 0
+    if 0 < peak <= MASK_THRESHOLD:
+        raise CaptureError(f"{source}: the mask's largest value is {peak}, so no pixel counts as the person (above "
+                           f"{MASK_THRESHOLD}); masks mark the person with 255 and the background with 0"
+                           + (" (this one looks saved as 0/1: multiply it by 255)" if peak == 1 else ""))
+    return matte
 
 
 def output_size(width: int, height: int, scale: float, max_side: int | None = None) -> tuple[int, int]:

@@ -16,6 +16,7 @@ from pig.body.npz import read_npz
 from pig.body.params import THUMAN_KEYS, ParamsError, SmplxParams, from_thuman
 from pig.data.images import read_image
 from pig.data.raw import CaptureError, RawCamera
+from pig.data.rectify import check_matte
 from pig.inputs import require_regular_file
 
 CALIBRATION = "calibration.json"
@@ -81,7 +82,7 @@ class Thuman4Capture:
         path = self._path("masks", camera, frame)
         mask = read_image(path, cv2.IMREAD_GRAYSCALE, self._pixels(camera))
         self._check_size(mask, camera, path)
-        return mask
+        return check_matte(mask, str(path))
 
     def _camera(self, camera: str) -> RawCamera:
         if camera not in self.cameras:

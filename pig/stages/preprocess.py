@@ -32,7 +32,7 @@ from pig.data.ground_truth import GT_MESHES, TrueMeshes
 from pig.data.images import read_image
 from pig.data.projection_check import Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
-from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
+from pig.data.rectify import MASK_THRESHOLD, Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
@@ -262,6 +262,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
             shutil.copyfile(truth, work / GT_MESHES)
 
         check_start = time.perf_counter()
+        _require_person(raw, checked, check_masks)
         check = check_projection({c: views[c] for c in checked}, checked,
                                  {c: [check_masks[c][f] for f in fs] for c, fs in checked.items()}, vertices,
                                  model.faces.numpy(), Tolerance(cfg.check_body_tolerance_m,
@@ -286,6 +287,17 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         }
         write_json(work / "report.json", report)  # a non-finite IoU or radius is written as null
     return report
+
+
+def _require_person(raw: RawCapture, checked: dict[str, list[int]], masks: dict[str, dict[int, np.ndarray]]) -> None:
+    """CaptureError naming the masks when a camera's masks show no person in any checked frame: the projection
+    check would blame the calibration."""
+    empty = {c: fs for c, fs in checked.items() if not any(masks[c][f].any() for f in fs)}
+    if empty:
+        listed = "; ".join(f"camera {c}, frames {fs}" for c, fs in empty.items())
+        raise CaptureError(f"{raw.source}: the masks are empty (all black, no pixel above {MASK_THRESHOLD}) in every "
+                           f"frame checked for {len(empty)} of {len(checked)} cameras ({listed}); masks mark the person "
+                           "with 255: check the mask files of these cameras")
 
 
 def _folder_bytes(folder: Path) -> int:
