@@ -125,7 +125,7 @@ def preset_path(name_or_path: str | Path) -> Path:
     """Resolve a preset name (`cpu-demo`) or a path to a preset YAML file."""
     candidate = Path(name_or_path)
     if candidate.suffix in (".yaml", ".yml"):
-        if not candidate.is_file():
+        if not candidate.exists():
             raise ConfigError(f"preset file {candidate} does not exist")
         return candidate
     return named_config("presets", str(name_or_path))
