@@ -302,3 +302,108 @@ def test_fifos_and_devices_as_inputs_are_refused_naming_the_file(tmp_path):
     _unblock_later(preset)
     with pytest.raises(ConfigError, match=rf"^{preset}: is a FIFO"):
         load_preset(preset)
+
+
+# -- weak group: preset values -----------------------------------------------------------------------------------
+
+def _section_classes():
+    from pig.avatar.config import AvatarConfig
+    from pig.avatar.training import FitConfig
+    from pig.stages.evaluate import EvaluateConfig
+    from pig.stages.preprocess import PreprocessConfig
+
+    return {"preprocess": PreprocessConfig, "fit": FitConfig, "avatar": AvatarConfig, "evaluate": EvaluateConfig}
+
+
+BAD_VALUES = {  # key -> values refused; each stands in for a crash deep inside a stage in the sweep
+    ("preprocess", "scale"): [".nan", ".inf", "0", "-1"],
+    ("preprocess", "max_side"): ["0", "-5", "1"],
+    ("preprocess", "min_iou"): [".nan", "0", "-0.5", "1.5"],
+    ("preprocess", "check_frames"): ["0", "-2"],
+    ("fit", "views"): ["0", "-1"],
+    ("fit", "eval_every"): ["0"],
+    ("fit", "iterations"): ["-5", "0"],
+    ("avatar", "hidden_width"): ["0", "1000000"],
+    ("avatar", "num_anchors"): ["0", "1e12"],
+    ("evaluate", "batch_size"): ["0"],
+    ("evaluate", "timing_frames"): ["-3", "0"],
+}
+
+
+@pytest.mark.parametrize("section, key, value", [(s, k, v) for (s, k), vs in BAD_VALUES.items() for v in vs])
+def test_out_of_range_preset_values_are_refused_naming_file_and_key(tmp_path, section, key, value):
+    path = tmp_path / "preset.yaml"
+    path.write_text(f"{section}:\n  {key}: {value}\n")
+    with pytest.raises(ConfigError, match=rf"^{path}: section '{section}'\.{key}: expected (an integer|a finite "
+                                          r"number) (above|at least) "):
+        load_section(load_preset(path), section, _section_classes()[section])
+
+
+def test_the_shipped_presets_load_and_in_range_values_pass(tmp_path):
+    classes = _section_classes()
+    for name in ("test", "cpu-demo", "paper"):
+        preset = load_preset(name)
+        for section, cls in classes.items():
+            load_section(preset, section, cls)
+    path = tmp_path / "preset.yaml"
+    path.write_text("preprocess: {scale: 0.5, max_side: 16, min_iou: 1.0, check_frames: 1}\n")
+    cfg = load_section(load_preset(path), "preprocess", classes["preprocess"])
+    assert (cfg.scale, cfg.max_side, cfg.min_iou, cfg.check_frames) == (0.5, 16, 1.0, 1)
+
+
+def test_preprocess_with_a_nan_scale_names_the_preset_and_key(tmp_path, capsys):
+    root = write_thuman4(tmp_path / "s", cameras=2, frames=2)
+    preset = tmp_path / "preset.yaml"
+    preset.write_text("preprocess:\n  scale: .nan\n")
+    assert run_cli(preprocess_main, ["--input", str(root), "--output", str(tmp_path / "out"), "--preset", str(preset),
+                                     "--no-progress"]) == 1
+    assert f"{preset}: section 'preprocess'.scale: expected a finite number above 0, found nan" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("args, option", [(["--fps", "0"], "--fps"), (["--fps", "nan"], "--fps"),
+                                          (["--size", "0", "-5"], "--size"), (["--size", "100000", "100"], "--size"),
+                                          (["--seconds", "1e12"], "--seconds"), (["--seconds", "-1"], "--seconds")])
+def test_animate_refuses_out_of_range_fps_size_and_seconds(tmp_path, capsys, args, option):
+    from pig.stages.animate import main as animate_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        animate_main(["--checkpoint", str(tmp_path / "avatar.pt"), "--output", str(tmp_path / "anim"), *args])
+    assert exit_info.value.code == 2
+    assert f"argument {option}: expected a finite value" in capsys.readouterr().err
+    assert not (tmp_path / "anim").exists()
+
+
+# -- weak group: wrong failure blamed ----------------------------------------------------------------------------
+
+def test_masks_saved_as_0_1_are_named_not_the_calibration(tmp_path, capsys):
+    root = write_thuman4(tmp_path / "s", cameras=3, frames=3, ext="png")
+    for path in sorted((root / "masks").rglob("*.png")):
+        cv2.imwrite(str(path), (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8))
+    assert _preprocess(root, tmp_path / "out") == 1
+    err = capsys.readouterr().err
+    assert "masks/cam00/00000000.png: the mask's largest value is 1, so no pixel counts as the person" in err
+    assert "multiply it by 255" in err and "calibration" not in err
+
+
+def test_all_black_masks_are_named_not_the_calibration(tmp_path, capsys):
+    root = write_thuman4(tmp_path / "s", cameras=3, frames=3, ext="png")
+    for path in (root / "masks" / "cam02").glob("*.png"):
+        cv2.imwrite(str(path), np.zeros((80, 96), np.uint8))
+    assert _preprocess(root, tmp_path / "out") == 1
+    err = capsys.readouterr().err
+    assert (f"{root}: the masks are empty (all black, no pixel above 128) in every frame checked for 1 of 3 cameras "
+            "(camera cam02, frames [0, 1, 2])") in err
+    assert "calibration" not in err
+
+
+# -- weak group: numpy's messages --------------------------------------------------------------------------------
+
+def test_a_garbage_body_model_in_a_checkpoint_spec_never_shows_numpys_pickle_advice():
+    from pig.avatar.build import build_avatar
+
+    for garbage in (b"\0" * 100, b"PK\x03\x04" + b"\0" * 96):
+        with pytest.raises(ValueError) as info:
+            build_avatar({"avatar": {}, "field": {}, "precond": {}, "body_model_npz": garbage})
+        assert str(info.value).startswith("body model of the avatar spec: not a valid npz archive")
+        assert "pickle" not in str(info.value)
