@@ -360,7 +360,8 @@ def test_preprocess_with_a_nan_scale_names_the_preset_and_key(tmp_path, capsys):
     preset.write_text("preprocess:\n  scale: .nan\n")
     assert run_cli(preprocess_main, ["--input", str(root), "--output", str(tmp_path / "out"), "--preset", str(preset),
                                      "--no-progress"]) == 1
-    assert f"{preset}: section 'preprocess'.scale: expected a finite number above 0, found nan" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{preset}: section 'preprocess'.scale: expected a finite number above 0, found nan" in err
     assert not (tmp_path / "out").exists()
 
 
