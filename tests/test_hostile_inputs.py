@@ -411,3 +411,14 @@ def test_a_garbage_body_model_in_a_checkpoint_spec_never_shows_numpys_pickle_adv
             build_avatar({"avatar": {}, "field": {}, "precond": {}, "body_model_npz": garbage})
         assert str(info.value).startswith("body model of the avatar spec: not a valid npz archive")
         assert "pickle" not in str(info.value)
+
+
+def test_a_body_model_that_is_a_fifo_is_named_as_one(tmp_path):
+    from pig.body.model import BodyModel, BodyModelError
+
+    fifo = tmp_path / "SMPLX_NEUTRAL.npz"
+    os.mkfifo(fifo)
+    _unblock_later(fifo)
+    with pytest.raises(BodyModelError, match=rf"^{fifo}: is a FIFO \(named pipe\), not a regular file; expected an "
+                                             "SMPL-X model"):
+        BodyModel.from_file(fifo)

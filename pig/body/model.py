@@ -115,7 +115,7 @@ class BodyModel(nn.Module):
     @classmethod
     def from_file(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> "BodyModel":
         path = Path(path)
-        if not path.is_file():
+        if not path.exists():  # a FIFO or device is refused by read_npz, named as such
             raise BodyModelError(f"body model file {path} does not exist (expected an SMPL-X npz such as SMPLX_NEUTRAL.npz)")
         arrays = read_npz(path, BodyModelError, f"an SMPL-X model with {list(REQUIRED_KEYS)}",
                           keys=REQUIRED_KEYS + HAND_MEAN_KEYS, pickled=("J_regressor",))

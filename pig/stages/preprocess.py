@@ -74,7 +74,7 @@ def resolve_body_model(explicit: str | Path | None, raw_root: Path) -> Path:
     """The body model to use: the explicit path, else body_model.npz in the raw folder, else a clear error."""
     if explicit is not None:
         path = Path(explicit)
-        if not path.is_file():
+        if not path.exists():  # a FIFO or device is refused by the reader, named as such
             raise BodyModelError(f"body model {path} does not exist (expected an SMPL-X npz such as SMPLX_NEUTRAL.npz)")
         return path
     if (raw_root / RAW_BODY_MODEL).is_file():
