@@ -47,7 +47,7 @@ class Bounds:
         ok = math.isfinite(value) and (self.gt is None or value > self.gt) and (self.ge is None or value >= self.ge) \
             and (self.le is None or value <= self.le)
         if not ok:
-            wanted = [f"{op} {limit:g}" for op, limit in (("above", self.gt), ("at least", self.ge),
+            wanted = [f"{op} {limit:,}" for op, limit in (("above", self.gt), ("at least", self.ge),
                                                           ("at most", self.le)) if limit is not None]
             kind = "an integer" if isinstance(value, int) else "a finite number"
             raise ConfigError(f"{where}: expected {kind} {' and '.join(wanted)}, found {value!r}")
