@@ -422,3 +422,19 @@ def test_a_body_model_that_is_a_fifo_is_named_as_one(tmp_path):
     with pytest.raises(BodyModelError, match=rf"^{fifo}: is a FIFO \(named pipe\), not a regular file; expected an "
                                              "SMPL-X model"):
         BodyModel.from_file(fifo)
+
+
+def test_an_exr_declaring_a_huge_data_window_is_refused_before_reading(tmp_path):
+    from pig.data.exr import read_exr, write_exr
+
+    path = tmp_path / "depth.exr"
+    values = np.arange(35, dtype=np.float32).reshape(5, 7)
+    write_exr(path, {"Z": values})
+    np.testing.assert_array_equal(read_exr(path)["Z"], values)
+    data = bytearray(path.read_bytes())
+    window = data.index(b"dataWindow\0box2i\0") + len(b"dataWindow\0box2i\0") + 4  # after the attribute's size
+    data[window:window + 16] = struct.pack("<4i", 0, 0, 29999, 29999)
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=rf"^{path}: the EXR header declares a 30000x30000 \(WxH\) data window, not 1 "
+                                         r"to 100,000,000 pixels; not read"):
+        read_exr(path)

@@ -1,6 +1,7 @@
 """OpenEXR read/write of float32 per-pixel channels (render alpha and expected depth), written atomically.
 
-Storage only; uses the `OpenEXR` 3.x API (`OpenEXR.File`), ZIP-compressed scanlines, full float precision.
+Storage only; uses the `OpenEXR` 3.x API (`OpenEXR.File`), ZIP-compressed scanlines, full float precision. A
+file's declared data window is bounded before its pixels are read.
 """
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from pig.data.images import MAX_PIXELS
+from pig.inputs import require_regular_file
 from pig.stages._io import atomic_path
 
 
@@ -26,12 +29,20 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:
         handle.write(str(tmp))
 
 
-def read_exr(path: str | Path) -> dict[str, np.ndarray]:
-    """All channels of an EXR file as (H, W) float32 arrays keyed by channel name."""
+def read_exr(path: str | Path, max_pixels: int = MAX_PIXELS) -> dict[str, np.ndarray]:
+    """All channels of an EXR file as (H, W) float32 arrays keyed by channel name; ValueError naming the file if its
+    header declares more than `max_pixels` pixels (checked before the pixels are read)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"{path}: EXR file not found")
+    require_regular_file(path, ValueError, "an OpenEXR file")
     try:
+        with OpenEXR.File(str(path), header_only=True) as handle:
+            low, high = handle.header()["dataWindow"]
+        width, height = (int(v) + 1 for v in np.asarray(high, np.int64) - np.asarray(low, np.int64))
+        if width * height > max_pixels or width < 1 or height < 1:
+            raise ValueError(f"{path}: the EXR header declares a {width}x{height} (WxH) data window, not 1 to "
+                             f"{max_pixels:,} pixels; not read")
         with OpenEXR.File(str(path), separate_channels=True) as handle:
             channels = handle.channels()
             return {name: np.asarray(channel.pixels, dtype=np.float32) for name, channel in channels.items()}
