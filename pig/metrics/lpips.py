@@ -157,16 +157,18 @@ class LPIPS(nn.Module):
 
 def head(fx: torch.Tensor, fy: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """One tap's term of LPIPS in the features' own dtype, autocast off: (B, C, h, w) pairs and the (1, C, 1, 1)
-    linear weight -> (B,) float32. In bf16 the normalised features and their difference stay bf16 (under autocast
+    linear weight -> (B,) in float32 or wider. In bf16 the normalised features and their difference stay bf16 (under autocast
     `pow` and `sum` would make them float32 tensors of the tap's full size); the spatial mean is taken in float32."""
     with torch.autocast(fx.device.type, enabled=False):
         nx = fx / (fx.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
         ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-        return ((nx - ny).pow(2) * weight.to(fx.dtype)).sum(1).float().mean(dim=(1, 2))
+        d = ((nx - ny).pow(2) * weight.to(fx.dtype)).sum(1)
+        return d.to(torch.promote_types(d.dtype, torch.float32)).mean(dim=(1, 2))
 
 
 class TrainingLPIPS(nn.Module):
-    """`net` (an LPIPS) as the loss of Eq. 15 computes it: (B, 3, H, W) pairs in [0, 1] -> (B,) float32.
+    """`net` (an LPIPS) as the loss of Eq. 15 computes it: (B, 3, H, W) pairs in [0, 1] -> (B,) float32 (float64
+    for float64 inputs and network).
 
     `bf16`: the backbone under bf16 autocast (float32 weights). `bf16_head`: inputs channels-last and `head` in the
     features' bf16, not the reference's float32 normalisation. `compiled`: torch.compile of the whole (static
@@ -181,7 +183,8 @@ class TrainingLPIPS(nn.Module):
     def _eager(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16):
             if not self.bf16_head:
-                return self.net(x, y).float()
+                d = self.net(x, y)
+                return d.to(torch.promote_types(d.dtype, torch.float32))
             self.net._check(x, y)
             x, y = (t.contiguous(memory_format=torch.channels_last) for t in (x, y))
             taps = zip(self.net._activations(x), self.net._activations(y), self.net.lins)
