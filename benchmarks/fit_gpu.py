@@ -226,7 +226,7 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
         out[split] = {}
         for record in sorted(metrics.glob(f"{split}_lod*.json")):
             summary = read_record(record, "evaluate summary")
-            out[split][int(summary["lod"])] = {k: summary[k] for k in ("psnr", "ssim", "images", *GROUND_TRUTH_KEYS)
+            out[split][int(summary["lod"])] = {k: summary[k] for k in ("psnr", "ssim", "lpips", "images", *GROUND_TRUTH_KEYS)
                                                if k in summary}
     out["evaluate_s"] = time.perf_counter() - t0
     return out
