@@ -6,7 +6,7 @@
 # literal crop (a view at a time, host syncs) and the float32 head; + the bf16 head; + the fixed-shape crop; + the
 # network compiled (= the `paper` preset). Peak GPU memory and graphs compiled (warm-up / timed window) per variant.
 # Capture: 8 cameras x 5 frames, generated there (~40 s). Stage a sets up, generates, starts the fit process in its
-# own session and waits up to 480 s; stage w waits for it up to 540 s more (call it at once after a, until it
+# own session and waits up to 420 s; stage w waits for it up to 540 s more (call it at once after a, until it
 # prints "all done"). Expected GPU wall time: ~9 min on a fresh machine (set-up 60-90 s, the paper preset's
 # compilation ~3-4 min in the first variant, `full` ~2 min at ~0.5 s/it, the mmlphuman variants ~30 s each), ~6 min
 # where the paper preset was compiled before on the same machine.
@@ -41,6 +41,6 @@ case $1 in
      args=(); for v in "${VARIANTS[@]}"; do args+=(--variant "$v"); done
      setsid python3 benchmarks/fit_gpu.py --workdir $W --cameras 8 --frames 5 --reuse-capture --iterations 220 \
        --warmup 20 --json $W/lpips.json "${args[@]}" > $W/lpips.txt 2>&1 < /dev/null &
-     wait_done 480 ;;
+     wait_done 420 ;;
   w) wait_done 540 ;;
 esac
