@@ -189,6 +189,25 @@ def test_schedule_and_windows_follow_the_run():
     assert values[0] == values[2] and values[0] != values[1] and values[0] != pytest.approx(resized.item(), rel=1e-6)
 
 
+def test_a_subset_of_views_scores_that_many_of_them():
+    """`lpips_views: 1` of 3: the term is one view's own distance, and over iterations not always the same view."""
+    render, target, masks = _batch(count=3)
+    background = torch.tensor(BG, dtype=torch.float64)
+    band = torch.zeros_like(masks)
+    net = _alex()
+    per_view = [lpips_views(net, *(t[k:k + 1].permute(0, 3, 1, 2) for t in (render, target)), masks[k:k + 1],
+                            background, "full").item() for k in range(3)]
+    loss = LossTerms(FitConfig(weight_lpips=2.0, lpips_net="alex", lpips_weights="random", lpips_views=1), background, net,
+                     compiled=False)
+    picked = []
+    for iteration in range(6):
+        loss.at(iteration, 0.5)
+        value = loss(render, target, masks, 64, band)["lpips"].item()
+        picked.append(min(range(3), key=lambda k: abs(per_view[k] - value)))
+        assert value == pytest.approx(per_view[picked[-1]], rel=1e-12)
+    assert len(set(picked)) > 1
+
+
 def test_training_lpips_levers_against_the_float32_reference():
     """TrainingLPIPS: the head in the features' dtype (float64 here) is the reference's algebra (1e-12); the bf16
     backbone and head stay within 5 % of the float32 reference distance (bf16 keeps 8 bits: measured <= 1 %); the

@@ -89,11 +89,13 @@ class FitConfig:
     lpips_weights: Literal["pretrained", "random"] = "pretrained"
     # What the LPIPS term sees (pig.avatar.losses.lpips_views): "full" frames, or "mmlphuman", MMLPHuman's
     # `lpips_crop`-pixel square of each view's mask box, resized, and random windows of it from progress
-    # `lpips_patches_from` on (1: never). The term is 0 before progress `lpips_start` (either form).
+    # `lpips_patches_from` on (1: never). The term is 0 before progress `lpips_start` (either form). `lpips_views`:
+    # the term on that many views of each loss evaluation, drawn at random (0: all; a different loss, off in `paper`).
     lpips_form: Literal["full", "mmlphuman"] = "full"
     lpips_crop: int = 512
     lpips_start: float = 0.0
     lpips_patches_from: float = 1.0
+    lpips_views: int = 0
     band_radius_px: float = 3.0  # silhouette band radius at `band_reference_height` rows (THuman4)
     band_reference_height: int = 1150
     sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
@@ -130,7 +132,7 @@ class FitConfig:
 
     def __post_init__(self):
         for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),
-                            ("lr_warmup", 0)):
+                            ("lr_warmup", 0), ("lpips_views", 0)):
             if getattr(self, name) < least:
                 raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
         if self.precision not in PRECISIONS:
@@ -280,6 +282,9 @@ class LossTerms:
             if self.progress < self.cfg.lpips_start:  # MMLPHuman's late start: logged as 0, nothing computed
                 terms["lpips"] = torch.zeros((), device=render.device)
                 return terms
+            if 0 < self.cfg.lpips_views < render.shape[0]:
+                pick = torch.from_numpy(np.sort(self._windows.choice(render.shape[0], self.cfg.lpips_views, replace=False)))
+                render, images, masks, band = (t[pick.to(t.device)] for t in (render, images, masks, band))
             x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
             offsets = None
             if self.cfg.lpips_form == "mmlphuman" and self.progress >= self.cfg.lpips_patches_from:
