@@ -283,16 +283,25 @@ class LossTerms:
                 terms["lpips"] = torch.zeros((), device=render.device)
                 return terms
             if 0 < self.cfg.lpips_views < render.shape[0]:
-                pick = torch.from_numpy(np.sort(self._windows.choice(render.shape[0], self.cfg.lpips_views, replace=False)))
-                render, images, masks, band = (t[pick.to(t.device)] for t in (render, images, masks, band))
+                pick = _to_device(np.sort(self._windows.choice(render.shape[0], self.cfg.lpips_views, replace=False)),
+                                  render.device)
+                render, images, masks, band = (t[pick] for t in (render, images, masks, band))
             x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
             offsets = None
             if self.cfg.lpips_form == "mmlphuman" and self.progress >= self.cfg.lpips_patches_from:
-                offsets = torch.from_numpy(self._windows.random((x.shape[0], 2))).to(x.device)
+                offsets = _to_device(self._windows.random((x.shape[0], 2)), x.device)
             terms["lpips"] = lpips_views(self.lpips, x, y, masks, self.background, self.cfg.lpips_form, self.cfg.lpips_crop,
                                          offsets, self.cfg.lpips_crop_sliced)
             terms["total"] = terms["total"] + self.cfg.weight_lpips * terms["lpips"]
         return terms
+
+
+def _to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A small host array on `device`; to a GPU from pinned memory, so that the copy does not wait for the queue."""
+    tensor = torch.from_numpy(array)
+    if device.type == "cuda":
+        return tensor.pin_memory().to(device, non_blocking=True)
+    return tensor.to(device)
 
 
 def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: RasterizerConfig, background: torch.Tensor,
