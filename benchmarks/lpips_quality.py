@@ -70,7 +70,8 @@ def main(argv=None) -> int:
         results[name] = evaluate_budget_run(args, name, fit_dir, path, args.capture)
         results[name]["term"] = loss_terms(avatar)["lpips"]["state"]
 
-    print(f"capture {args.capture}, preset {args.preset}{' + ' + args.set if args.set else ''}, {args.budget:g} s of training each")
+    settings = f" + {args.set}" if args.set else ""
+    print(f"capture {args.capture}, preset {args.preset}{settings}, {args.budget:g} s of training each")
     for name, result in results.items():
         print("\n" + table(f"{name}: {result['iterations']} iterations, LPIPS term {result['term']!r}", scores(result)))
     on, off = scores(results["with_lpips"]), scores(results["without_lpips"])

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "lpips_quality.py"
@@ -38,5 +39,7 @@ def test_lpips_quality_runs_both_fits_and_prints_their_tables(small_capture, tmp
         assert 0 < ssim_on <= 1 and psnr_on > 5
         assert diff[key][:2] == pytest.approx([psnr_on - off[key][0], ssim_on - off[key][1]], abs=2e-4)
         assert str(on[key][2]) == "nan"  # the evaluation's LPIPS weights are absent: missing, not a number
-    # Each fit's own training log: the term on every step row of one, 0 rows of the other.
-    assert (tmp_path / "w" / "fit_with_lpips" / "avatar.pt").exists() and (tmp_path / "w" / "fit_without_lpips" / "avatar.pt").exists()
+    # Each fit's own training log: the term on every step row of one, on none of the other's.
+    logs = {name: pd.read_csv(tmp_path / "w" / f"fit_{name}" / "train_log.csv").iloc[1:] for name in ("with_lpips", "without_lpips")}
+    assert (logs["with_lpips"]["lpips"] > 0).all() and logs["without_lpips"]["lpips"].isna().all()
+    assert len(logs["with_lpips"]) > 0 and len(logs["without_lpips"]) > 0
