@@ -30,10 +30,15 @@ from pig.config import load_preset  # noqa: E402
 METRICS = ("psnr", "ssim", "lpips")
 
 
+def _number(value) -> float:
+    """A metric of a summary; missing (absent weights: null in the strict JSON) as NaN."""
+    return math.nan if value is None else float(value)
+
+
 def table(title: str, rows: dict[tuple[str, int], dict]) -> str:
     lines = [title, "| split | LOD | images | " + " | ".join(METRICS) + " |", "|---|---|---|" + "---|" * len(METRICS)]
     for (split, lod), values in sorted(rows.items()):
-        cells = " | ".join(f"{values.get(m, math.nan):.4f}" for m in METRICS)
+        cells = " | ".join(f"{_number(values.get(m)):.4f}" for m in METRICS)
         lines.append(f"| {split} | {lod} | {values.get('images', '')} | {cells} |")
     return "\n".join(lines)
 
@@ -75,7 +80,7 @@ def main(argv=None) -> int:
     for name, result in results.items():
         print("\n" + table(f"{name}: {result['iterations']} iterations, LPIPS term {result['term']!r}", scores(result)))
     on, off = scores(results["with_lpips"]), scores(results["without_lpips"])
-    diff = {key: {m: on[key].get(m, math.nan) - off[key].get(m, math.nan) for m in METRICS} for key in on if key in off}
+    diff = {key: {m: _number(on[key].get(m)) - _number(off[key].get(m)) for m in METRICS} for key in on if key in off}
     print("\n" + table("with_lpips - without_lpips", diff))
     return 0
 
