@@ -210,7 +210,7 @@ def test_a_subset_of_views_scores_that_many_of_them():
 
 def test_training_lpips_levers_against_the_float32_reference():
     """TrainingLPIPS: the head in the features' dtype (float64 here) is the reference's algebra (1e-12); the bf16
-    backbone and head stay within 5 % of the float32 reference distance (bf16 keeps 8 bits: measured <= 1 %); the
+    backbone and head stay within 2 % of the float32 reference distance (bf16 keeps 8 bits; measured 0.03 %); the
     compiled module matches the eager one (float32 reordering, 1e-5) and compiles once for one input shape."""
     gen = torch.Generator().manual_seed(4)
     x64 = torch.rand(3, 3, 48, 48, generator=gen, dtype=torch.float64)
@@ -222,7 +222,7 @@ def test_training_lpips_levers_against_the_float32_reference():
     x, y = x64.float(), y64.float()
     reference = net(x, y)
     fast = TrainingLPIPS(net, bf16=True, bf16_head=True)(x, y)
-    assert fast.dtype == torch.float32 and ((fast - reference).abs() / reference).max() < 0.05
+    assert fast.dtype == torch.float32 and ((fast - reference).abs() / reference).max() < 0.02
 
     graphs = counters["stats"]["unique_graphs"]
     compiled = TrainingLPIPS(net, bf16_head=True, compiled=True)
