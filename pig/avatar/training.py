@@ -267,7 +267,7 @@ class LossTerms:
         """The iteration about to be computed and the run's progress in [0, 1]; the random windows of an iteration
         come from (seed, iteration), so a resumed fit draws the same ones."""
         self.progress = progress
-        self._windows = np.random.default_rng([self.cfg.seed, iteration, 27])
+        self._windows = np.random.default_rng([self.cfg.seed, iteration, 27])  # a stream apart from the view sampler's
 
     def band_radius(self, height: int) -> int:
         return band_radius(height, self.cfg.band_radius_px, self.cfg.band_reference_height)
