@@ -45,6 +45,7 @@ from pathlib import Path
 
 import torch
 import yaml
+from torch._dynamo.utils import counters
 
 from pig.config import load_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
@@ -140,11 +141,14 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
     phase_start = args.iterations
     ops_start = args.iterations + args.profile_phases
 
+    graphs = {"start": counters["stats"]["unique_graphs"]}
+
     def tick(iteration: int) -> None:
         # The device is waited for only where the timed window starts and ends, so that the host may run ahead.
         if iteration in (args.warmup, args.iterations):
             torch.cuda.synchronize()
             marks[iteration] = time.perf_counter()
+            graphs[iteration] = counters["stats"]["unique_graphs"]
         if timer is not None:
             timer.end_iteration()
             timer.active = phase_start <= iteration < ops_start
@@ -175,6 +179,8 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path) 
         "wait_share": statistics.mean(waits) / ms,
         "peak_gib": torch.cuda.max_memory_allocated() / 2**30, "fit_total_s": time.perf_counter() - t0,
         "log": str(out_dir / "train_log.csv"),
+        # Graphs torch.compile built before the timed window, and inside it (recompilations: want 0).
+        "graphs_warmup": graphs[args.warmup] - graphs["start"], "graphs_timed": graphs[args.iterations] - graphs[args.warmup],
     }
     if timer is not None:
         result["phases_ms"] = timer.medians_ms()
@@ -220,7 +226,7 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
         out[split] = {}
         for record in sorted(metrics.glob(f"{split}_lod*.json")):
             summary = read_record(record, "evaluate summary")
-            out[split][int(summary["lod"])] = {k: summary[k] for k in ("psnr", "ssim", "images", *GROUND_TRUTH_KEYS)
+            out[split][int(summary["lod"])] = {k: summary[k] for k in ("psnr", "ssim", "lpips", "images", *GROUND_TRUTH_KEYS)
                                                if k in summary}
     out["evaluate_s"] = time.perf_counter() - t0
     return out
@@ -302,7 +308,8 @@ def main(argv=None) -> int:
     for variant in variants:  # a line per variant as it ends, in case the run is cut short
         results.append(run_variant(args, *variant, profile, capture))
         r = results[-1]
-        print(f"variant {r['name']}: {r['ms_per_iteration']:.1f} ms/it, peak {r['peak_gib']:.2f} GiB, fit {r['fit_total_s']:.0f} s"
+        print(f"variant {r['name']}: {r['ms_per_iteration']:.1f} ms/it, peak {r['peak_gib']:.2f} GiB, fit {r['fit_total_s']:.0f} s, "
+              f"graphs compiled {r['graphs_warmup']} in the warm-up and {r['graphs_timed']} in the timed window"
               + (f", budget {r['budget']}" if "budget" in r else ""), flush=True)
 
     header = [

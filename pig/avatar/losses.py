@@ -14,6 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from pig.avatar.lpips_crop import crop_views, crop_views_sliced
 from pig.metrics.lpips import LPIPS, WeightsMissing
 from pig.metrics.ssim import ssim
 
@@ -21,6 +22,8 @@ from pig.metrics.ssim import ssim
 # before the state was recorded.
 LPIPS_STATES = ("on", "weights absent", "weight 0", "random weights", "unknown")
 NET_NAMES = {"alex": "AlexNet", "vgg": "VGG"}
+# Forms of the LPIPS term (FitConfig.lpips_form): the whole frames, or MMLPHuman's crops of the silhouette's box.
+LPIPS_FORMS = ("full", "mmlphuman")
 
 
 def lpips_term(cfg, device: str | torch.device = "cpu") -> tuple[torch.nn.Module | None, dict]:
@@ -62,6 +65,26 @@ def fit_note(record: dict) -> str:
     if state == "unknown":
         return "fit's LPIPS term unknown (avatar.pt written before fits recorded it, re-run the fit)"
     raise ValueError(f"LPIPS term state {state!r}: expected one of {LPIPS_STATES}")
+
+
+def lpips_views(lpips, x: torch.Tensor, y: torch.Tensor, masks: torch.Tensor, background: torch.Tensor, form: str,
+                crop: int = 512, offsets: torch.Tensor | None = None, sliced: bool = False) -> torch.Tensor:
+    """Eq. 15's LPIPS term of (B, 3, H, W) renders `x` and targets `y` (bands applied) in `form` (LPIPS_FORMS).
+
+    "full": the mean over views of `lpips(x, y)` on the whole frames. "mmlphuman": the mean over the views with a
+    non-empty mask of the distances of their `crop`-sized squares (pig.avatar.lpips_crop; `offsets` (B, 2) uniforms
+    turn on the random windows, `sliced` crops a view at a time as MMLPHuman's code does), 0 where no view has one.
+    `lpips` maps two (B, 3, h, w) batches to (B,) distances.
+    """
+    if form == "full":
+        return lpips(x, y).mean()
+    if form != "mmlphuman":
+        raise ValueError(f"LPIPS form must be one of {LPIPS_FORMS}, found {form!r}")
+    crop_fn = crop_views_sliced if sliced else crop_views
+    cx, valid = crop_fn(x, masks, background, crop, offsets)
+    cy, _ = crop_fn(y, masks, background, crop, offsets)
+    weights = valid.to(torch.float32)
+    return (lpips(cx, cy) * weights).sum() / weights.sum().clamp(min=1)
 
 
 def band_radius(height: int, radius_px: float, reference_height: int) -> int:

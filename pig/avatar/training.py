@@ -8,7 +8,8 @@ Speed levers (preset section `fit`, each off in the CPU presets; benchmarks/NOTE
 `precision` (decoders in TF32 or bf16 autocast, float32 master weights), `compile` (torch.compile of the
 decoder MLPs and of the L1 + SSIM loss, with SSIM's blur as shifted sums that compile into one kernel),
 `compile_posing` (torch.compile of the body model, transport and splat assembly of a training step),
-`batched_render` (one rasterizer call and one loss evaluation for all timesteps and views), `fused_adam`
+`batched_render` (one rasterizer call and one loss evaluation for all timesteps and views), `lpips_bf16_head`,
+`lpips_compile` and `lpips_crop_sliced` (the LPIPS term's, pig.metrics.lpips.TrainingLPIPS), `fused_adam`
 (torch's fused Adam kernels instead of a loop over tensors), `log_every` (loss terms read back to the host
 every N iterations, not every one), `host_band` (the loss's silhouette band computed by the view loader threads
 with OpenCV, not on the training device). The KNN solve's host synchronisations are `precond.cg_check_every`.
@@ -33,7 +34,7 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
-from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term
+from pig.avatar.losses import LPIPS_FORMS, apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.config import DEFAULT_PRESET, Bounds, ConfigError, load_preset, load_section, resolve_device
@@ -41,6 +42,7 @@ from pig.data.capture import Capture
 from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
+from pig.metrics.lpips import MIN_SIDE, TrainingLPIPS
 from pig.metrics.psnr import psnr
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
@@ -85,6 +87,15 @@ class FitConfig:
     # "random": a seeded, randomly initialised LPIPS network, no file read; to time the term where the
     # weights are absent (benchmarks only: the loss is not the paper's, and the tables say so).
     lpips_weights: Literal["pretrained", "random"] = "pretrained"
+    # What the LPIPS term sees (pig.avatar.losses.lpips_views): "full" frames, or "mmlphuman", MMLPHuman's
+    # `lpips_crop`-pixel square of each view's mask box, resized, and random windows of it from progress
+    # `lpips_patches_from` on (1: never). The term is 0 before progress `lpips_start` (either form). `lpips_views`:
+    # the term on that many views of each loss evaluation, drawn at random (0: all; a different loss, off in `paper`).
+    lpips_form: Literal["full", "mmlphuman"] = "full"
+    lpips_crop: int = 512
+    lpips_start: float = 0.0
+    lpips_patches_from: float = 1.0
+    lpips_views: int = 0
     band_radius_px: float = 3.0  # silhouette band radius at `band_reference_height` rows (THuman4)
     band_reference_height: int = 1150
     sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
@@ -115,10 +126,13 @@ class FitConfig:
     fused_adam: bool = False
     log_every: int = 1
     host_band: bool = False
+    lpips_bf16_head: bool = False
+    lpips_compile: bool = False
+    lpips_crop_sliced: bool = False
 
     def __post_init__(self):
         for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),
-                            ("lr_warmup", 0)):
+                            ("lr_warmup", 0), ("lpips_views", 0)):
             if getattr(self, name) < least:
                 raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
         if self.precision not in PRECISIONS:
@@ -134,6 +148,14 @@ class FitConfig:
         if self.lpips_weights == "random" and (self.lpips_backbone_weights or self.lpips_linear_weights):
             raise ConfigError("fit.lpips_weights is 'random', which reads no weights file, but fit.lpips_backbone_weights "
                               "or fit.lpips_linear_weights is set; unset them or use 'pretrained'")
+        if self.lpips_form not in LPIPS_FORMS:
+            raise ConfigError(f"fit.lpips_form must be one of {LPIPS_FORMS}, found {self.lpips_form!r}")
+        for name in ("lpips_start", "lpips_patches_from"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ConfigError(f"fit.{name} must lie in [0, 1] (a fraction of the run), found {getattr(self, name)}")
+        if self.lpips_crop < MIN_SIDE.get(self.lpips_net, 32):
+            raise ConfigError(f"fit.lpips_crop must be at least {MIN_SIDE.get(self.lpips_net, 32)} pixels for "
+                              f"{self.lpips_net!r}, found {self.lpips_crop}")
         if self.time_budget_s is not None and not self.time_budget_s > 0:
             raise ConfigError(f"fit.time_budget_s must be positive or null, found {self.time_budget_s}")
 
@@ -228,14 +250,24 @@ def _matmul_precision(precision: str):
 
 class LossTerms:
     """Eq. 15 of renders (B, H, W, 3) against their views; L1 + SSIM compiled with `compiled`, LPIPS in bf16
-    autocast with precision "bf16"."""
+    autocast with precision "bf16", in the form and with the levers of `cfg` (FitConfig.lpips_*). `at` tells it the
+    iteration and the run's progress, which the LPIPS term's schedule and random windows follow."""
 
     def __init__(self, cfg: FitConfig, background: torch.Tensor, lpips, compiled: bool):
-        self.cfg, self.background, self.lpips = cfg, background, lpips
+        self.cfg, self.background = cfg, background
+        self.lpips = None if lpips is None else TrainingLPIPS(lpips, cfg.precision == "bf16", cfg.lpips_bf16_head,
+                                                                cfg.lpips_compile)
         weights = (cfg.weight_l1, cfg.weight_ssim, 0.0)
         blur = "shift" if compiled else "conv"
         l1_ssim = lambda render, target, band: image_loss(render, target, band, background, weights, None, blur)
         self._l1_ssim = torch.compile(l1_ssim) if compiled else l1_ssim
+        self.at(0, 0.0)
+
+    def at(self, iteration: int, progress: float) -> None:
+        """The iteration about to be computed and the run's progress in [0, 1]; the random windows of an iteration
+        come from (seed, iteration), so a resumed fit draws the same ones."""
+        self.progress = progress
+        self._windows = np.random.default_rng([self.cfg.seed, iteration, 27])  # a stream apart from the view sampler's
 
     def band_radius(self, height: int) -> int:
         return band_radius(height, self.cfg.band_radius_px, self.cfg.band_reference_height)
@@ -247,11 +279,29 @@ class LossTerms:
             band = boundary_band(masks, self.band_radius(height))
         terms = dict(self._l1_ssim(render, images, band))
         if self.lpips is not None and self.cfg.weight_lpips > 0:
+            if self.progress < self.cfg.lpips_start:  # MMLPHuman's late start: logged as 0, nothing computed
+                terms["lpips"] = torch.zeros((), device=render.device)
+                return terms
+            if 0 < self.cfg.lpips_views < render.shape[0]:
+                pick = _to_device(np.sort(self._windows.choice(render.shape[0], self.cfg.lpips_views, replace=False)),
+                                  render.device)
+                render, images, masks, band = (t[pick] for t in (render, images, masks, band))
             x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
-            with torch.autocast(x.device.type, torch.bfloat16, enabled=self.cfg.precision == "bf16"):
-                terms["lpips"] = self.lpips(x, y).float().mean()
+            offsets = None
+            if self.cfg.lpips_form == "mmlphuman" and self.progress >= self.cfg.lpips_patches_from:
+                offsets = _to_device(self._windows.random((x.shape[0], 2)), x.device)
+            terms["lpips"] = lpips_views(self.lpips, x, y, masks, self.background, self.cfg.lpips_form, self.cfg.lpips_crop,
+                                         offsets, self.cfg.lpips_crop_sliced)
             terms["total"] = terms["total"] + self.cfg.weight_lpips * terms["lpips"]
         return terms
+
+
+def _to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A small host array on `device`; to a GPU from pinned memory, so that the copy does not wait for the queue."""
+    tensor = torch.from_numpy(array)
+    if device.type == "cuda":
+        return tensor.pin_memory().to(device, non_blocking=True)
+    return tensor.to(device)
 
 
 def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: RasterizerConfig, background: torch.Tensor,
@@ -440,6 +490,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             for opt, lrs in zip(optimizers, base_lrs):
                 for group, lr in zip(opt.param_groups, lrs):
                     group["lr"] = lr * factor
+            loss.at(i, done)
             with phase("sample"):
                 batch = batches.get(i)
             waits.append(batch.wait_s)

@@ -6,6 +6,9 @@ is rebuilt in plain torch with torchvision's layer layout, so torchvision's chec
 (`alex.pth` / `vgg.pth`) load by their original keys. `weights="random"` builds the same network from a seed
 instead (no file read): its distances mean nothing, but it costs what the pretrained one costs, for timing
 the loss term where the weights are absent.
+
+`LPIPS.forward` is the float32 reference: the evaluation scores with it, and its parity tests hold to it.
+`TrainingLPIPS` wraps it for the loss with the speed levers of the fit (bf16 backbone and head, compiled).
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ from pig.metrics.weights import (
     lpips_package_weights,
 )
 
-__all__ = ["LPIPS", "WeightsMissing", "backbone_features"]
+__all__ = ["LPIPS", "TrainingLPIPS", "WeightsMissing", "backbone_features", "head"]
 
 # Input normalisation of the lpips package's ScalingLayer (for inputs in [-1, 1]).
 SHIFT = (-0.030, -0.088, -0.188)
@@ -134,11 +137,8 @@ class LPIPS(nn.Module):
         return taps
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        if x.shape != y.shape or x.dim() != 4 or x.shape[1] != 3:
-            raise ValueError(f"LPIPS expects two (B, 3, H, W) tensors of one shape, found {tuple(x.shape)} and {tuple(y.shape)}")
-        if min(x.shape[2:]) < MIN_SIDE[self.net]:
-            raise ValueError(f"LPIPS ({self.net}) needs images of at least {MIN_SIDE[self.net]} pixels per side, "
-                             f"found {x.shape[3]}x{x.shape[2]}")
+        """The reference path: (B,) distances in float32 (outside autocast); its name and signature stay."""
+        self._check(x, y)
         total = x.new_zeros(x.shape[0])
         for fx, fy, lin in zip(self._activations(x), self._activations(y), self.lins):
             # Unit-normalise along channels (eps as the lpips package), weight the squared difference, average spatially.
@@ -146,3 +146,49 @@ class LPIPS(nn.Module):
             ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
             total = total + lin((nx - ny).pow(2)).mean(dim=(1, 2, 3))
         return total
+
+    def _check(self, x: torch.Tensor, y: torch.Tensor) -> None:
+        if x.shape != y.shape or x.dim() != 4 or x.shape[1] != 3:
+            raise ValueError(f"LPIPS expects two (B, 3, H, W) tensors of one shape, found {tuple(x.shape)} and {tuple(y.shape)}")
+        if min(x.shape[2:]) < MIN_SIDE[self.net]:
+            raise ValueError(f"LPIPS ({self.net}) needs images of at least {MIN_SIDE[self.net]} pixels per side, "
+                             f"found {x.shape[3]}x{x.shape[2]}")
+
+
+def head(fx: torch.Tensor, fy: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """One tap's term of LPIPS in the features' own dtype, autocast off: (B, C, h, w) pairs and the (1, C, 1, 1)
+    linear weight -> (B,) in float32 or wider. In bf16 the normalised features and their difference stay bf16 (under autocast
+    `pow` and `sum` would make them float32 tensors of the tap's full size); the spatial mean is taken in float32."""
+    with torch.autocast(fx.device.type, enabled=False):
+        nx = fx / (fx.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+        ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+        d = ((nx - ny).pow(2) * weight.to(fx.dtype)).sum(1)
+        return d.to(torch.promote_types(d.dtype, torch.float32)).mean(dim=(1, 2))
+
+
+class TrainingLPIPS(nn.Module):
+    """`net` (an LPIPS) as the loss of Eq. 15 computes it: (B, 3, H, W) pairs in [0, 1] -> (B,) float32 (float64
+    for float64 inputs and network).
+
+    `bf16`: the backbone under bf16 autocast (float32 weights). `bf16_head`: inputs channels-last and `head` in the
+    features' bf16, not the reference's float32 normalisation. `compiled`: torch.compile of the whole (static
+    shapes: one graph per input shape). All off, this is `net.forward`.
+    """
+
+    def __init__(self, net: LPIPS, bf16: bool = False, bf16_head: bool = False, compiled: bool = False):
+        super().__init__()
+        self.net, self.bf16, self.bf16_head = net, bf16, bf16_head
+        self._distance = torch.compile(self._eager, dynamic=False) if compiled else self._eager
+
+    def _eager(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16):
+            if not self.bf16_head:
+                d = self.net(x, y)
+                return d.to(torch.promote_types(d.dtype, torch.float32))
+            self.net._check(x, y)
+            x, y = (t.contiguous(memory_format=torch.channels_last) for t in (x, y))
+            taps = zip(self.net._activations(x), self.net._activations(y), self.net.lins)
+        return sum(head(fx, fy, lin.weight.view(1, -1, 1, 1)) for fx, fy, lin in taps)
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return self._distance(x, y)
