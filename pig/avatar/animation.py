@@ -127,8 +127,8 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
     """
     from pig.avatar.checkpoint import load_avatar
     from pig.avatar.driver import AvatarDriver
-    from pig.avatar.export import frame_selection
-    from pig.body.motion import Motion, align_motion, capture_frame, read_motion
+    from pig.avatar.export import capture_motion
+    from pig.body.motion import Motion, capture_frame, read_motion
     from pig.config import resolve_device
     from pig.data.exr import write_exr
     from pig.progress import progress_bar
@@ -157,11 +157,8 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
                         betas=None, source=f"{checkpoint} (training timestep 0, still)")
     else:
         motion = read_motion(motion_path, hands_mean=model.body_model.hands_mean.cpu().numpy())  # DNA-style fits
-        chosen = frame_selection(frames, motion.num_frames, str(motion_path))
-        motion = motion.select(slice(int(chosen[0]), int(chosen[-1]) + 1, int(chosen[1] - chosen[0]) if len(chosen) > 1 else 1))
-        if fps is not None:
-            motion = motion.resample(fps)
-        motion = align_motion(motion, model.body_model, driver.refined()[0], target_up, ground, centre, up)
+        motion = capture_motion(motion, model.body_model, driver.refined()[0], (target_up, ground, centre), frames,
+                                fps, up)[0]
 
     count = len(motion.full_pose)
     if camera is not None:

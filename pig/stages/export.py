@@ -1,15 +1,16 @@
 """Export stage: the avatar as standard 3DGS .ply files, canonical and per motion frame, with correspondences.
 
-Writes OUTPUT/canonical.ply (zero pose, zero translation) and, with --motion, OUTPUT/frame_{i:06d}.ply for
-each selected motion frame i plus OUTPUT/correspondences.npz (stable anchor ids and per-frame splat centres);
-the conventions are in pig.avatar.export.
+Writes OUTPUT/canonical.ply (rest pose, upright along the capture's up axis) and, with --motion,
+OUTPUT/frame_{i:06d}.ply for each selected motion frame i, placed in the capture's frame as the animate stage places
+them, plus OUTPUT/correspondences.npz (stable anchor ids and per-frame splat centres) and export.json (each file's up
+axis, the capture's ground); the conventions are in pig.avatar.export.
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from pig.avatar.export import export_avatar
+from pig.avatar.export import FORMATS, export_avatar
 from pig.config import resolve_device
 from pig.stages._cli import add_common_arguments, run_cli
 
@@ -25,13 +26,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", metavar="START:STOP[:STEP]",
                         help="motion frames to export, STOP excluded (default: all)")
     parser.add_argument("--lod", type=int, help="level of detail, 0 = coarsest (default: the finest)")
+    parser.add_argument("--up", choices=["+x", "-x", "+y", "-y", "+z", "-z"],
+                        help="the capture's up axis (default: inferred from the avatar's training poses)")
+    parser.add_argument("--format", default="ply", choices=list(FORMATS),
+                        help="ply: 3DGS PLY, every viewer; splat: antimatter15's .splat; ply_compressed: SuperSplat's "
+                             ".compressed.ply (default: ply)")
     parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier export")
     args = parser.parse_args(argv)
     output = export_avatar(args.checkpoint, args.output, args.lod, None, None, args.frames, args.motion,
-                           resolve_device(args.device, "--device"), args.overwrite)
+                           resolve_device(args.device, "--device"), args.overwrite, args.up, args.format)
     print(output)
     return 0
 
