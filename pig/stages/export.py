@@ -12,14 +12,15 @@ from pathlib import Path
 
 from pig.avatar.export import FORMATS, export_avatar
 from pig.config import resolve_device
-from pig.stages._cli import add_common_arguments, run_cli
+from pig.stages._cli import add_common_arguments, add_device_argument, run_cli, stage_parser
 
 MOTION_FORM = ("a motion npz: AMASS (poses (N, 156) SMPL-H or (N, 165) SMPL-X, trans, mocap_framerate), THuman4 "
                "smpl_params.npz or DNA-style fullpose (N, 55, 3) with transl")
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.export", description=__doc__.splitlines()[0])
+    parser = stage_parser("export", __doc__, "pig export --checkpoint results/synthetic/subject00/pig/avatar.pt --motion "
+                                             "pig/data/motions/demo.npz --frames 0:144:12 --output results/synthetic/subject00/pig/export")
     parser.add_argument("--checkpoint", type=Path, required=True, help="avatar.pt of the fit stage")
     parser.add_argument("--output", type=Path, required=True, help="export directory to write")
     parser.add_argument("--motion", type=Path, help=f"{MOTION_FORM}; adds frame_*.ply and correspondences.npz")
@@ -31,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--format", default="ply", choices=list(FORMATS),
                         help="ply: 3DGS PLY, every viewer; splat: antimatter15's .splat; ply_compressed: SuperSplat's "
                              ".compressed.ply (default: ply)")
-    parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    add_device_argument(parser)
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier export")

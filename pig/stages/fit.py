@@ -8,19 +8,18 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import torch
-
 from pig.avatar.training import fit
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
+from pig.stages._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.fit", description=__doc__.split("\n")[0])
+    parser = stage_parser("fit", __doc__, "pig fit --capture results/synthetic/subject00/capture --output results/synthetic/subject00/pig --preset test "
+                                          "--device cpu")
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory (results/.../capture)")
     parser.add_argument("--output", type=Path, required=True, help="variant directory; gets avatar.pt, train_log.csv/.png")
     add_preset_argument(parser, "its avatar, fit, field, precond, rasterizer and variants sections")
     parser.add_argument("--variant", default="pig", help="method variant from the preset's `variants` section")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
+    add_device_argument(parser)
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads of a CPU fit (default: the preset's fit.cpu_threads; the workflow passes "
                              "the rule's threads)")

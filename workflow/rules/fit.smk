@@ -28,5 +28,5 @@ rule fit_avatar:
             "avatar", "fit", "field", "precond", "rasterizer", variant=wildcards.variant
         ),
     shell:
-        "python -m pig.stages.fit --capture {params.capture:q} --output {params.output:q} "
+        "python -m pig fit --capture {params.capture:q} --output {params.output:q} "
         "--preset {params.preset:q} --variant {wildcards.variant:q} --threads {threads} > {log:q} 2>&1"
