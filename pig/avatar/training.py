@@ -20,7 +20,7 @@ import io
 import math
 import sys
 import time
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import AbstractContextManager, closing, contextmanager, nullcontext
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Literal
@@ -33,6 +33,7 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
+from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_writer
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
@@ -42,7 +43,7 @@ from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.metrics.psnr import psnr
-from pig.progress import progress_bar
+from pig.progress import LOG_INTERVAL_S
 from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
 from pig.stages._io import write_figure, write_text
 from pig.stages._outputs import claim_files
@@ -284,10 +285,12 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
 def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, variant: str = "pig",
         device: torch.device | str = "cpu", on_iteration: Callable[[int], None] | None = None,
         phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False,
-        threads: int | None = None) -> Path:
+        threads: int | None = None, progress_s: float = LOG_INTERVAL_S, tensorboard: bool = False) -> Path:
     """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
 
-    `threads`: torch CPU threads of a CPU fit in place of the preset's `fit.cpu_threads`.
+    `threads`: torch CPU threads of a CPU fit in place of the preset's `fit.cpu_threads`. A progress line
+    (pig.avatar.fit_progress) goes to stderr every `progress_s` seconds and at each held-out evaluation, which
+    also redraws train_log.png; `tensorboard` adds TensorBoard scalars under `output_dir`/tensorboard/.
 
     Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
     or with `overwrite`.
@@ -301,14 +304,14 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     callers_threads = torch.get_num_threads()
     try:
         return _fit(Path(capture_dir), Path(output_dir), preset_name, variant, resolve_device(str(device), "--device"),
-                    on_iteration, phase or (lambda name: nullcontext()), overwrite, threads)
+                    on_iteration, phase or (lambda name: nullcontext()), overwrite, threads, progress_s, tensorboard)
     finally:
         torch.set_num_threads(callers_threads)
 
 
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
          on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
-         overwrite: bool, threads: int | None) -> Path:
+         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool) -> Path:
     preset = load_preset(preset_name)
     overrides = variant_overrides(preset, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -323,7 +326,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     raster = load_section(preset, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
-    claim_files(output_dir, OUTPUT_FILES, "fit", (capture_dir,), overwrite)
+    claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"
     log_path = output_dir / "train_log.csv"
@@ -386,7 +389,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
 
     with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers,
                     loss.band_radius if fit_cfg.host_band else None) as source, \
-            _matmul_precision(fit_cfg.precision):
+            _matmul_precision(fit_cfg.precision), \
+            closing(FitProgress(str(output_dir), fit_cfg.iterations, start, progress_s,
+                                tensorboard_writer(output_dir / TENSORBOARD_DIR) if tensorboard else None)) as report:
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
@@ -401,6 +406,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "train_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
                      "lpips_term": lpips_record["state"], **evaluate_held_out(), "data_wait_ms": ""}]
+            _plot_log(output_dir / "train_log.png", rows)
+            report.record(rows[0])
+            report.print_line(0, 0.0)
 
         started = time.perf_counter()
         evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
@@ -424,16 +432,18 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             window, window_waits = {}, []
             return row
 
-        iteration = start
-        progress = progress_bar(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit",
-                                leave=False)
-        for i in progress:
+        def fraction_done(i: int) -> tuple[float, float]:
+            """(training seconds so far, the run's fraction done before iteration i: iterations or time budget)."""
             trained = wall_before + time.perf_counter() - started - evaluating
-            done = i / fit_cfg.iterations
-            if fit_cfg.time_budget_s is not None:
-                if trained >= fit_cfg.time_budget_s:
-                    break
-                done = max(done, trained / fit_cfg.time_budget_s)
+            if fit_cfg.time_budget_s is None:
+                return trained, i / fit_cfg.iterations
+            return trained, max(i / fit_cfg.iterations, trained / fit_cfg.time_budget_s)
+
+        iteration = start
+        for i in range(start, fit_cfg.iterations):
+            trained, done = fraction_done(i)
+            if fit_cfg.time_budget_s is not None and trained >= fit_cfg.time_budget_s:
+                break
             if grid_delay and i == grid_delay:
                 start_grid_smoothing()
             factor = lr_factor(done, i, fit_cfg.lr_warmup, fit_cfg.lr_final)
@@ -465,9 +475,11 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 if evaluate:
                     t0 = time.perf_counter()
                     row.update(evaluate_held_out())
+                    _plot_log(output_dir / "train_log.png", rows + [row])  # to watch the fit: redrawn at each evaluation
                     evaluating += time.perf_counter() - t0
-                    progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}", refresh=False)
                 rows.append(row)
+                report.record(row)
+            report.step(iteration, min(fraction_done(iteration)[1], 1.0), evaluate)
             if save:
                 checkpoint(state_path, iteration, wall_before + time.perf_counter() - started)
                 last_save = time.perf_counter()
@@ -479,6 +491,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             rows.append(window_row(iteration, ""))
         if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
             rows[-1].update(evaluate_held_out())
+            report.record(rows[-1])
+        report.finish(iteration)
     if waits:
         per_iteration = (time.perf_counter() - started - evaluating) / len(waits)
         print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "
