@@ -5,7 +5,6 @@ Writes --output/animation.webm (VP9, browser-playable), animation.json, and with
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from pig.avatar.animation import Orbit, animate

@@ -11,7 +11,6 @@ stage's splats (lod{l}/splats.npz; pig.metrics.geometry) in the summary. Real ca
 """
 from __future__ import annotations
 
-import argparse
 import math
 import re
 from dataclasses import dataclass

@@ -7,7 +7,6 @@ axis, the capture's ground); the conventions are in pig.avatar.export.
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from pig.avatar.export import FORMATS, export_avatar

@@ -6,7 +6,6 @@ scalars for TensorBoard; the optimisation itself is pig.avatar.training.fit (Sec
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from pig.avatar.training import fit

@@ -5,7 +5,6 @@ The picture is pig.render.montage.split_montage (finest LOD; error on a fixed co
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from pig.render.montage import split_montage

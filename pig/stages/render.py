@@ -10,7 +10,6 @@ work (nearest timestep, body, transport, decoders, rasterization) per LOD for th
 """
 from __future__ import annotations
 
-import argparse
 import platform
 import time
 from dataclasses import dataclass

@@ -18,7 +18,6 @@ Markdown shows them in the FID cell, as `123.40 (N=36, biased)`.
 """
 from __future__ import annotations
 
-import argparse
 import math
 from pathlib import Path
 
