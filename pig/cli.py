@@ -39,8 +39,8 @@ def help_text() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run `pig STAGE ARGS...`; returns the exit status (`pig.stages._cli.run_cli`'s)."""
-    from pig.stages._cli import run_cli
+    """Run `pig STAGE ARGS...`; returns the exit status (`pig._cli.run_cli`'s)."""
+    from pig._cli import run_cli
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):

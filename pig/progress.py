@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 LOG_INTERVAL_S = 30.0
 
-# Set by the stages' `--quiet` (pig.stages._cli): no bar, and no progress line of the fit.
+# Set by the stages' `--quiet` (pig._cli): no bar, and no progress line of the fit.
 _quiet = False
 
 

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from pig.config import ConfigError, resolve_device
-from pig.stages._cli import TRACEBACK_HINT, add_common_arguments, run_cli
+from pig._cli import TRACEBACK_HINT, add_common_arguments, run_cli
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -14,7 +14,7 @@ from pig.avatar.export import write_splat_ply
 from pig.body.params import SmplxParams
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
-from pig.stages._cli import run_cli
+from pig._cli import run_cli
 from pig.stages.export import main
 from body_fixture import tiny_body_model
 

@@ -285,7 +285,7 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     from pig.avatar.batches import Sampler
     from pig.data.capture import Capture
     from pig.data.raw import CaptureError
-    from pig.stages._cli import error_line
+    from pig._cli import error_line
     from pig.avatar.training import fit
 
     capture_dir = tmp_path / "capture"

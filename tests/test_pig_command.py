@@ -12,7 +12,7 @@ import pytest
 
 from pig.cli import STAGES
 from pig.progress import progress_bar
-from pig.stages._cli import device_name, run_cli
+from pig._cli import device_name, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 PRESENT = [stage for stage in STAGES if (REPO / "pig" / "stages" / f"{stage}.py").is_file()]

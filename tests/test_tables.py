@@ -17,7 +17,7 @@ import yaml
 from pig.avatar.variants import table_variants, variant_kind
 from pig.config import ConfigError, load_preset
 from pig.stages import tables
-from pig.stages._cli import run_cli
+from pig._cli import run_cli
 from pig.stages.tables import BLANK_ROW, REGION_KEYS, SPLITS, make_table, make_tables, noise_sigmas
 
 REPO = Path(__file__).resolve().parent.parent

@@ -170,8 +170,8 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
     from pig.data.exr import write_exr
     from pig.progress import progress_bar
     from pig.render.api import RasterizerConfig
-    from pig.stages._io import write_json, write_png
-    from pig.stages._outputs import build_dir, claim_dir
+    from pig._io import write_json, write_png
+    from pig._outputs import build_dir, claim_dir
 
     rasterizer = rasterizer or RasterizerConfig()
     orbit = orbit or Orbit()

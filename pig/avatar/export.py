@@ -50,8 +50,8 @@ import numpy as np
 import torch
 
 from pig.field.precondition import bake_preconditioning
-from pig.stages._io import atomic_path, write_json
-from pig.stages._outputs import build_dir, claim_dir
+from pig._io import atomic_path, write_json
+from pig._outputs import build_dir, claim_dir
 
 STAGE = "export"
 OPACITY_CLIP = 2.0**-24  # float32 spacing just below 1: 1 - 2^-24 is the largest float32 under 1

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 from pig.avatar.animation import Orbit, animate
 from pig.config import load_preset, load_section
 from pig.render.api import RasterizerConfig
-from pig.stages._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
+from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 
 
 def main(argv: list[str] | None = None) -> int:

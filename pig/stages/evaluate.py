@@ -23,6 +23,7 @@ import torch
 
 from pig.config import load_preset, load_section, resolve_device
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
+from pig.data.images import read_png
 from pig.data.raw import CaptureError
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
 from pig.metrics.geometry import ground_truth_geometry
@@ -32,9 +33,9 @@ from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssi
 from pig.metrics.ssim import ssim, ssim_map
 from pig.metrics.weights import WeightsMissing
 from pig.progress import progress_bar
-from pig.stages._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
-from pig.stages._io import read_png, read_record, write_json, write_text
-from pig.stages._outputs import claim_files
+from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
+from pig._io import read_record, write_json, write_text
+from pig._outputs import claim_files
 
 
 @dataclass

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from pig.avatar.export import FORMATS, export_avatar
 from pig.config import resolve_device
-from pig.stages._cli import add_common_arguments, add_device_argument, run_cli, stage_parser
+from pig._cli import add_common_arguments, add_device_argument, run_cli, stage_parser
 
 MOTION_FORM = ("a motion npz: AMASS (poses (N, 156) SMPL-H or (N, 165) SMPL-X, trans, mocap_framerate), THuman4 "
                "smpl_params.npz or DNA-style fullpose (N, 55, 3) with transl")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from pig.config import load_preset, load_section
 from pig.data.synthetic import SyntheticConfig, generate_capture
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
+from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from pig.render.montage import split_montage
-from pig.stages._cli import add_common_arguments, run_cli, stage_parser
-from pig.stages._io import write_figure
-from pig.stages._outputs import claim_files
+from pig._cli import add_common_arguments, run_cli, stage_parser
+from pig._io import write_figure
+from pig._outputs import claim_files
 
 
 def main(argv: list[str] | None = None) -> int:

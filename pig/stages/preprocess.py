@@ -35,9 +35,9 @@ from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.progress import progress_bar
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
-from pig.stages._io import atomic_path, write_json
-from pig.stages._outputs import claim_dir, resumable_dir
+from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
+from pig._io import atomic_path, write_json
+from pig._outputs import claim_dir, resumable_dir
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
 HELD_OUT = ("novel_view", "novel_pose")

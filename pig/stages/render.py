@@ -25,9 +25,9 @@ from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
 from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
-from pig.stages._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
-from pig.stages._io import write_json, write_png
-from pig.stages._outputs import build_dir, claim_dir
+from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
+from pig._io import write_json, write_png
+from pig._outputs import build_dir, claim_dir
 from pig.stages.evaluate import EvaluateConfig
 
 BLACK = (0.0, 0.0, 0.0)  # evaluation background (paper protocol: black, ground truth masked)

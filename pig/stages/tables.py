@@ -27,9 +27,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser  # noqa: E402
-from pig.stages._io import read_record, write_figure, write_text  # noqa: E402
-from pig.stages._outputs import claim_files  # noqa: E402
+from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser  # noqa: E402
+from pig._io import read_record, write_figure, write_text  # noqa: E402
+from pig._outputs import claim_files  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "fid")
@@ -330,7 +330,7 @@ def make_table(table: str, dataset: str, summaries: list[Path], variants: list[s
 
 def noise_sigmas(preset: str, variants: list[str]) -> dict[str, float]:
     """{variant: fit.sigma_body} of `variants` in `preset` (a name or a YAML path), overrides applied."""
-    from pig.avatar.training import FitConfig  # here: only the noise table needs it (and torch)
+    from pig.avatar.fit_config import FitConfig  # here: only the noise table needs it
     from pig.avatar.variants import variant_overrides
     from pig.config import load_preset, load_section
 
