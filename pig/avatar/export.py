@@ -136,9 +136,16 @@ def write_splats(path: str | Path, gaussians, fmt: str, up, what: str = "splats"
 
     rest = [name for name in table.dtype.names if name.startswith("f_rest_")]
     sh_rest = column(*rest).reshape(len(table), 3, -1).transpose(1, 2) if rest else torch.zeros(len(table), 0, 3)
-    data = export_splats(column("x", "y", "z"), column("scale_0", "scale_1", "scale_2"),
-                         column("rot_0", "rot_1", "rot_2", "rot_3"), column("opacity")[:, 0],
-                         column("f_dc_0", "f_dc_1", "f_dc_2")[:, None], sh_rest, format=fmt)
+    # One torch thread: the exporter's work is small per-chunk operations, where more threads only spin-wait
+    # (12x slower with 2 threads on the loaded 2-core machine, benchmarks/NOTES.md).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        data = export_splats(column("x", "y", "z"), column("scale_0", "scale_1", "scale_2"),
+                             column("rot_0", "rot_1", "rot_2", "rot_3"), column("opacity")[:, 0],
+                             column("f_dc_0", "f_dc_1", "f_dc_2")[:, None], sh_rest, format=fmt)
+    finally:
+        torch.set_num_threads(threads)
     if fmt == "ply_compressed":  # the comments go after the format line, as in our .ply
         magic, form, rest_of_file = data.split(b"\n", 2)
         data = b"\n".join([magic, form, *(line.encode("ascii") for line in up_comments(up)), rest_of_file])
