@@ -49,7 +49,7 @@ from torch._dynamo.utils import counters
 
 from pig.config import load_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
-from pig.stages._io import write_json
+from pig._io import write_json
 from pig.avatar.training import fit
 from pig.stages.preprocess import main as preprocess
 
@@ -209,7 +209,7 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
     """Render and evaluate novel view and novel pose at every LOD; {split: {lod: {psnr, ssim, images}}} + iterations."""
     from pig.stages.evaluate import main as evaluate, render_levels
     from pig.stages.render import main as render
-    from pig.stages._io import read_record
+    from pig._io import read_record
 
     with open(fit_dir / "train_log.csv", newline="") as file:
         last = list(csv.DictReader(file))[-1]

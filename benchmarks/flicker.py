@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from pig.data.capture import Capture
-from pig.stages._io import read_png
+from pig.data.images import read_png
 
 
 def level_flicker(capture: Capture, level_dir: Path, cameras: list[str], frames: list[int]) -> dict[str, float]:

@@ -36,7 +36,7 @@ from pig.field.latent_grid import LatentGrid
 from pig.field.lattice_solve import LatticeSystem, path_laplacian_eigenvalues
 from pig.field.optim import build_optimizer
 from pig.field.precondition import PrecondConfig, PreconditionedTensor
-from pig.stages._io import write_figure, write_text
+from pig._io import write_figure, write_text
 
 FORMS = ("none", "filter", "substitute")
 OPTIMIZERS = ("adam", "uniform_adam", "sgd")

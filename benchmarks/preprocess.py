@@ -29,7 +29,7 @@ from pig.data.formats import open_capture
 from pig.data.rectify import MASK_THRESHOLD, Rectifier, composite
 from pig.data.splits import SplitConfig
 from pig.data.synthetic import SyntheticConfig, generate_capture
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 from pig.stages.preprocess import PreprocessConfig, _encoders, preprocess_capture
 
 REPO = Path(__file__).resolve().parent.parent

@@ -24,7 +24,7 @@ import torch
 from pig.render import render_gaussians
 from pig.render.cpu_compositor import row_spans
 from pig.render.projection import project_splats
-from pig.stages._io import write_text
+from pig._io import write_text
 
 
 def make_scene(n: int, width: int, height: int, device: str, seed: int = 0, sh_degree: int = 3):

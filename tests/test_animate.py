@@ -82,7 +82,7 @@ def test_demo_motion_is_brought_upright_into_the_capture_frame(fitted, tmp_path)
 
 @pytest.mark.slow
 def test_capture_camera_and_bad_input(fitted, tmp_path, capsys):
-    from pig.stages._cli import run_cli
+    from pig._cli import run_cli
     from pig.stages.animate import main
 
     capture, checkpoint = fitted

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from pig.config import ConfigError, resolve_device
-from pig.stages._cli import TRACEBACK_HINT, add_common_arguments, run_cli
+from pig._cli import TRACEBACK_HINT, add_common_arguments, run_cli
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -181,7 +181,7 @@ def test_profile_option_still_names_the_preset_with_a_note(tmp_path, capsys, mon
     with pytest.raises(SystemExit):
         parser_of(["--profile", missing, "--help"])
     out = capsys.readouterr()
-    note = f"{module.replace('pig.stages.', 'python -m pig.stages.')}: note: --profile is deprecated, use --preset " \
+    note = f"{module.replace('pig.stages.', 'pig ')}: note: --profile is deprecated, use --preset " \
            "(compute presets are in config/presets/)"
     assert out.err.splitlines() == [note]
     assert "--profile" not in out.out and "--preset PRESET" in out.out
@@ -194,7 +194,7 @@ def test_deprecated_profile_option_chooses_the_preset(tmp_path, capsys, monkeypa
     missing = tmp_path / "old.yaml"
     assert run_cli(generate.main, ["--output", str(tmp_path / "raw"), "--profile", str(missing)]) == 1
     assert capsys.readouterr().err.splitlines() == [
-        "python -m pig.stages.generate: note: --profile is deprecated, use --preset (compute presets are in "
+        "pig generate: note: --profile is deprecated, use --preset (compute presets are in "
         "config/presets/)",
         f"generate: error: preset file {missing} does not exist"]
     assert not (tmp_path / "raw").exists()

@@ -14,7 +14,7 @@ from pig.avatar.export import write_splat_ply
 from pig.body.params import SmplxParams
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
-from pig.stages._cli import run_cli
+from pig._cli import run_cli
 from pig.stages.export import main
 from body_fixture import tiny_body_model
 
@@ -26,7 +26,7 @@ def read_ply(path) -> tuple[list[str], dict[str, np.ndarray]]:
     """(property names in file order, {name: float32 column}) of a binary little-endian float-only PLY."""
     data = path.read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")
-    lines = data[:end].decode("ascii").splitlines()
+    lines = [line for line in data[:end].decode("ascii").splitlines() if not line.startswith("comment ")]
     assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
     count = int(lines[2].split()[2]) if lines[2].startswith("element vertex ") else None
     assert count is not None and lines[-1] == "end_header"
@@ -177,26 +177,44 @@ def test_ply_writer_refuses_invalid_splats_and_writes_nothing(tmp_path):
 
 
 def test_export_canonical_and_motion_frames_match_the_avatar(checkpoint, motion, tmp_path):
+    """Frames are the motion as the animate stage places it (pig.body.motion.align_motion on the selected frames,
+    with the avatar's refined shape and its capture's up, ground and centre); the canonical cloud is the rest pose
+    turned upright along the capture's nearest axis."""
+    from scipy.spatial.transform import Rotation
+
+    from pig.avatar.driver import AvatarDriver
+    from pig.body.motion import align_motion, capture_frame, read_motion
+
     motion_path, poses, transl = motion
     out = tmp_path / "export"
     assert main(["--checkpoint", str(checkpoint), "--output", str(out), "--motion", str(motion_path),
                  "--frames", "1:4:2", "--lod", "1"]) == 0
     assert sorted(p.name for p in out.iterdir()) == [".pig-stage", "canonical.ply", "correspondences.npz",
-                                                     "frame_000001.ply", "frame_000003.ply"]
+                                                     "export.json", "frame_000001.ply", "frame_000003.ply"]
     model = load_avatar(checkpoint)
-    # Canonical: zero pose and translation, timestep 0's embedding.
-    canonical = _gaussians(model, 0, 1, np.zeros((55, 3)), np.zeros(3))
+    up, ground, centre = capture_frame(model)
+    axis = np.zeros(3)
+    axis[np.argmax(np.abs(up))] = np.sign(up[np.argmax(np.abs(up))])
+    # Canonical: zero body pose and translation, the root turning +y onto `axis`, timestep 0's embedding.
+    rest = np.zeros((55, 3))
+    turn = np.cross([0.0, 1.0, 0.0], axis)
+    rest[0] = turn / np.linalg.norm(turn) * np.arccos(axis[1]) if np.linalg.norm(turn) > 0 else [0, 0, np.pi * (axis[1] < 0)]
+    np.testing.assert_allclose(Rotation.from_rotvec(rest[0]).apply([0.0, 1.0, 0.0]), axis, atol=1e-12)
+    canonical = _gaussians(model, 0, 1, rest, np.zeros(3))
     assert canonical[0].shape == (150, 3) and canonical[4].shape == (150, 9, 3)
     assert_ply_matches(out / "canonical.ply", canonical)
-    # Frame 1 is near training timestep 2, frame 3 near timestep 0 (by construction of the motion).
+    clip = read_motion(motion_path, hands_mean=model.body_model.hands_mean.numpy())
+    clip = align_motion(clip.select(slice(1, 4, 2)), model.body_model, AvatarDriver(model).refined()[0], up, ground, centre)
     corr = np.load(out / "correspondences.npz")
     assert sorted(corr.files) == ["anchor_ids", "frames", "lod", "positions", "timesteps"]
     np.testing.assert_array_equal(corr["frames"], [1, 3])
-    np.testing.assert_array_equal(corr["timesteps"], [2, 0])
+    timesteps = [model.nearest_timestep(torch.as_tensor(pose)) for pose in clip.full_pose]
+    np.testing.assert_array_equal(corr["timesteps"], timesteps)
     assert int(corr["lod"]) == 1 and corr["positions"].shape == (2, 150, 3) and corr["positions"].dtype == np.float32
     np.testing.assert_array_equal(corr["anchor_ids"], np.arange(150))
-    for row, (frame, timestep) in enumerate([(1, 2), (3, 0)]):
-        read = assert_ply_matches(out / f"frame_{frame:06d}.ply", _gaussians(model, timestep, 1, poses[frame], transl[frame]))
+    for row, frame in enumerate([1, 3]):
+        read = assert_ply_matches(out / f"frame_{frame:06d}.ply",
+                                  _gaussians(model, timesteps[row], 1, clip.full_pose[row], clip.transl[row]))
         np.testing.assert_array_equal(corr["positions"][row], np.stack([read["x"], read["y"], read["z"]], 1))
     # The motion moved the splats: a frame is not the canonical cloud, nor another frame.
     assert np.abs(corr["positions"][0] - corr["positions"][1]).max() > 0.1
@@ -269,8 +287,88 @@ def test_output_folder_rules(checkpoint, motion, tmp_path, capsys):
     assert main([*base, "--overwrite", "--motion", str(motion[0]), "--frames", "0:1"]) == 0
     assert not (out / "notes.txt").exists() and (out / "frame_000000.ply").is_file()
     assert main(base) == 0
-    assert sorted(p.name for p in out.iterdir()) == [".pig-stage", "canonical.ply"]
+    assert sorted(p.name for p in out.iterdir()) == [".pig-stage", "canonical.ply", "export.json"]
     render = tmp_path / "render"
     render.mkdir()
     (render / ".pig-stage").write_text('{"stage": "render"}')
     assert "holds the render stage's output, not the export stage's" in _error(capsys, [*base[:2], "--output", str(render)])
+
+
+def test_up_override_turns_the_canonical_cloud_and_the_frames(checkpoint, motion, tmp_path):
+    """--up +z: the rest body turned by a quarter turn about x (+y onto +z), the frames aligned to +z, as animate's
+    --up does; the headers and the sidecar name +z."""
+    import json
+
+    from pig.avatar.driver import AvatarDriver
+    from pig.body.motion import align_motion, capture_frame, read_motion
+
+    out = tmp_path / "export"
+    assert main(["--checkpoint", str(checkpoint), "--output", str(out), "--motion", str(motion[0]), "--frames", "0:2",
+                 "--lod", "0", "--up", "+z"]) == 0
+    model = load_avatar(checkpoint)
+    rest = np.zeros((55, 3))
+    rest[0] = [np.pi / 2, 0.0, 0.0]
+    assert_ply_matches(out / "canonical.ply", _gaussians(model, 0, 0, rest, np.zeros(3)))
+    clip = read_motion(motion[0], hands_mean=model.body_model.hands_mean.numpy()).select(slice(0, 2))
+    clip = align_motion(clip, model.body_model, AvatarDriver(model).refined()[0], *capture_frame(model), "+z")
+    for row in range(2):
+        timestep = model.nearest_timestep(torch.as_tensor(clip.full_pose[row]))
+        assert_ply_matches(out / f"frame_{row:06d}.ply", _gaussians(model, timestep, 0, clip.full_pose[row], clip.transl[row]))
+        header = (out / f"frame_{row:06d}.ply").read_bytes().split(b"end_header")[0].decode()
+        assert "comment up_axis +z\ncomment up 0.000000000 0.000000000 1.000000000\n" in header
+    record = json.loads((out / "export.json").read_text())
+    assert record["up"] == [0.0, 0.0, 1.0] and record["up_axis"] == "+z" and record["lod"] == 0
+    assert {entry["up_axis"] for entry in record["files"].values()} == {"+z"}
+
+
+def _canonical_splats(checkpoint, lod):
+    """(means, linear scales, unit quats, opacities, sh) of the canonical cloud, float64 numpy."""
+    return [np.asarray(a.double()) for a in _gaussians(load_avatar(checkpoint), 0, lod, np.zeros((55, 3)), np.zeros(3))]
+
+
+def test_splat_format_holds_every_splat_as_antimatter15_reads_it(checkpoint, tmp_path):
+    """.splat: 32-byte records (xyz, linear scales float32; RGBA of the DC colour and opacity, quaternion w x y z as
+    bytes v * 128 + 128), one per splat in any order; decoded here with numpy and matched by position."""
+    out = tmp_path / "export"
+    assert main(["--checkpoint", str(checkpoint), "--output", str(out), "--format", "splat", "--lod", "1"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == [".pig-stage", "canonical.splat", "export.json"]
+    record = np.frombuffer((out / "canonical.splat").read_bytes(), dtype=[("xyz", "<f4", 3), ("scale", "<f4", 3),
+                                                                         ("rgba", "u1", 4), ("rot", "u1", 4)])
+    means, quats, scales, opacities, sh = _canonical_splats(checkpoint, 1)
+    assert len(record) == len(means) == 150
+    mine, theirs = np.lexsort(means.T[::-1]), np.lexsort(record["xyz"].T[::-1].astype(np.float64))
+    np.testing.assert_allclose(record["xyz"][theirs], means[mine], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(record["scale"][theirs], scales[mine], rtol=1e-5)
+    colour = np.clip((0.28209479177387814 * sh[:, 0] + 0.5) * 255, 0, 255)
+    np.testing.assert_allclose(record["rgba"][theirs, :3], colour[mine], atol=1.0)
+    np.testing.assert_allclose(record["rgba"][theirs, 3], 255 * opacities[mine], atol=1.0)
+    unit = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    np.testing.assert_allclose(record["rot"][theirs], np.clip(unit[mine] * 128 + 128, 0, 255), atol=1.0)
+
+
+def test_compressed_ply_holds_the_splats_within_its_quantisation(checkpoint, tmp_path):
+    """.compressed.ply (SuperSplat): chunks of 256 splats with float bounds, positions packed 11-10-11 bits between
+    them; decoded here and each position matched to the nearest true splat within one quantisation step. Its
+    header names the up axis as our .ply does."""
+    from scipy.spatial import cKDTree
+
+    out = tmp_path / "export"
+    assert main(["--checkpoint", str(checkpoint), "--output", str(out), "--format", "ply_compressed"]) == 0
+    data = (out / "canonical.compressed.ply").read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii").splitlines()
+    assert header[:3] == ["ply", "format binary_little_endian 1.0", "comment up_axis +y"]
+    assert header[3].startswith("comment up ")
+    counts = {line.split()[1]: int(line.split()[2]) for line in header if line.startswith("element ")}
+    floats = sum(1 for line in header if line.startswith("property float"))
+    means, _, _, opacities, sh = _canonical_splats(checkpoint, 2)
+    assert counts["vertex"] == int((opacities > 1 / 255).sum()) > 0 and floats == 18
+    chunks = np.frombuffer(data, "<f4", counts["chunk"] * 18, end).reshape(-1, 18)
+    packed = np.frombuffer(data, "<u4", counts["vertex"] * 4, end + chunks.nbytes).reshape(-1, 4)[:, 0].astype(np.int64)
+    bits = np.stack([(packed >> 21) & 2047, (packed >> 11) & 1023, packed & 2047], 1) / np.array([2047, 1023, 2047])
+    low, high = np.repeat(chunks[:, :3], 256, 0)[:len(packed)], np.repeat(chunks[:, 3:6], 256, 0)[:len(packed)]
+    decoded = low + bits * (high - low)
+    distance, _ = cKDTree(means).query(decoded)
+    step = np.linalg.norm((high - low) / np.array([2047, 1023, 2047]), axis=1)
+    assert (distance <= step + 1e-6).all(), distance.max()
+    assert sh.shape[1] == 9 and sum(1 for line in header if line.startswith("property uchar f_rest_")) == 24

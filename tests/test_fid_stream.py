@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pig.metrics.fid import FeatureStatistics, fid_from_statistics, frechet_distance
-from pig.stages._io import nan_for_null, write_json
+from pig._io import nan_for_null, write_json
 
 
 def _accumulate(features: np.ndarray, sizes, chunk_rows: int) -> FeatureStatistics:

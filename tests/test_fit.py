@@ -285,7 +285,7 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     from pig.avatar.batches import Sampler
     from pig.data.capture import Capture
     from pig.data.raw import CaptureError
-    from pig.stages._cli import error_line
+    from pig._cli import error_line
     from pig.avatar.training import fit
 
     capture_dir = tmp_path / "capture"
@@ -324,7 +324,9 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     assert done == list(range(4, due + 1))  # trained up to the batch that needs the file
     assert error_line(err.value).startswith(f"{path}: truncated")
     assert (state.read_bytes(), log.read_bytes()) == saved and not (tmp_path / "pig" / "avatar.pt").exists()
-    assert sorted(p.name for p in (tmp_path / "pig").iterdir()) == sorted([".pig-stage", "checkpoint.pt", "train_log.csv"])
+    # train_log.png: drawn at the first run's held-out evaluations, for watching the fit.
+    assert sorted(p.name for p in (tmp_path / "pig").iterdir()) == sorted([".pig-stage", "checkpoint.pt", "train_log.csv",
+                                                                           "train_log.png"])
 
 
 def test_fit_without_training_images_names_the_capture(small_capture, tmp_path):

@@ -24,7 +24,7 @@ from pig.config import ConfigError, load_preset, load_section, load_yaml
 from pig.data.images import decode_image
 from pig.data.raw import CaptureError
 from pig.data.thuman4 import Thuman4Capture
-from pig.stages._cli import run_cli
+from pig._cli import run_cli
 from pig.stages.preprocess import main as preprocess_main
 
 

@@ -118,7 +118,8 @@ def test_truncated_image_in_a_dna_smc_names_the_file_and_hdf5_path(tmp_path):
 
 def test_a_cut_render_read_for_evaluation_is_an_error_naming_it(tmp_path):
     """The evaluate stage's render reader decodes strictly too: a cut PNG is no grey-rowed image."""
-    from pig.stages._io import read_png, write_png
+    from pig._io import write_png
+    from pig.data.images import read_png
 
     image = np.random.default_rng(0).random((24, 32, 3))
     path = tmp_path / "render.png"

@@ -18,7 +18,8 @@ from pig.metrics.fid import FeatureStatistics, InceptionFeatures, fid_from_stati
 from pig.metrics.lpips import LPIPS, WeightsMissing, backbone_features
 from pig.metrics.psnr import psnr
 from pig.metrics.ssim import ssim
-from pig.stages._io import read_png, write_json, write_png
+from pig._io import write_json, write_png
+from pig.data.images import read_png
 
 
 @pytest.fixture

@@ -9,8 +9,9 @@ from pig.data.capture import Capture
 from pig.data.raw import CaptureError
 from pig.render.montage import error_map, finest_level, montage_views, spread
 from pig.stages import montage
-from pig.stages._cli import run_cli
-from pig.stages._io import read_png, write_png
+from pig._cli import run_cli
+from pig._io import write_png
+from pig.data.images import read_png
 
 SPLIT = "novel_view"
 

@@ -16,9 +16,9 @@ from thuman4_fixture import write_thuman4
 
 from pig.data.raw import CaptureError
 from pig.stages import evaluate, fit, generate, preprocess, render, tables
-from pig.stages._cli import run_cli
+from pig._cli import run_cli
 
-MARKER = ".pig-stage"  # pig.stages._outputs.MARKER; spelt out so that these tests also run on code without it
+MARKER = ".pig-stage"  # pig._outputs.MARKER; spelt out so that these tests also run on code without it
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:
@@ -140,7 +140,7 @@ def test_render_pointed_at_a_variant_folder_keeps_avatar_pt(tmp_path, capsys):
 
 
 def test_a_folder_marked_by_another_stage_is_refused(tmp_path):
-    from pig.stages._outputs import OutputError, claim_dir
+    from pig._outputs import OutputError, claim_dir
 
     (tmp_path / "capture").mkdir()
     (tmp_path / "capture" / MARKER).write_text(json.dumps({"stage": "preprocess"}))
@@ -261,7 +261,7 @@ def test_generate_replaces_its_own_capture_without_overwrite_and_removes_orphans
 # -- the shared helpers -----------------------------------------------------------------------------------------
 
 def test_the_marker_name_is_the_stages(tmp_path):
-    from pig.stages._outputs import MARKER as STAGE_MARKER, claim_files
+    from pig._outputs import MARKER as STAGE_MARKER, claim_files
 
     assert STAGE_MARKER == MARKER
     claim_files(tmp_path / "out", ["a.csv"], "evaluate")
@@ -269,7 +269,7 @@ def test_the_marker_name_is_the_stages(tmp_path):
 
 
 def test_atomic_dir_replaces_only_on_success(tmp_path):
-    from pig.stages._io import atomic_dir
+    from pig._io import atomic_dir
 
     target = tmp_path / "out"
     target.mkdir()
@@ -285,7 +285,7 @@ def test_atomic_dir_replaces_only_on_success(tmp_path):
 
 
 def test_remove_orphans_matches_only_its_own_path(tmp_path, dead_pid):
-    from pig.stages._io import remove_orphans
+    from pig._io import remove_orphans
 
     names = [f".avatar.{dead_pid}.tmp.pt", f".avatar.pt.{dead_pid}.tmp", f".avatar.{dead_pid}.tmp.csv",
              f".avatars.{dead_pid}.tmp.pt", f"avatar.{dead_pid}.tmp.pt", f".avatar.{dead_pid}x.tmp.pt"]

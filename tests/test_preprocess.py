@@ -23,7 +23,7 @@ from pig.data.projection_check import View, overlap_counts, silhouette
 from pig.data.raw import CaptureError
 from pig.data.splits import SplitConfig, make_split
 from pig.data.thuman4 import Thuman4Capture
-from pig.stages._cli import run_cli
+from pig._cli import run_cli
 from pig.stages.preprocess import PreprocessConfig, main, preprocess_capture
 
 REPO = Path(__file__).resolve().parent.parent
@@ -427,7 +427,7 @@ import cv2
 from pig.data.splits import SplitConfig
 from pig.data.thuman4 import Thuman4Capture
 from pig.stages import preprocess
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 
 raw, out, views = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
 calls, real = iter(range(1, 10**6)), preprocess._write_encoded
@@ -489,7 +489,7 @@ def test_changed_settings_start_the_unfinished_work_afresh(resume_raw, tmp_path,
 
 def test_a_second_run_on_the_same_output_is_refused_while_the_first_lives(resume_raw, tmp_path, capsys):
     out = tmp_path / "out"
-    script = ("import sys, time\nfrom pathlib import Path\nfrom pig.stages._outputs import output_lock\n"
+    script = ("import sys, time\nfrom pathlib import Path\nfrom pig._outputs import output_lock\n"
               "with output_lock(Path(sys.argv[1]), 'preprocess'):\n    print('held', flush=True)\n    time.sleep(60)\n")
     holder = subprocess.Popen([sys.executable, "-c", script, str(out)], stdout=subprocess.PIPE, text=True,
                               env={**os.environ, "PYTHONPATH": str(REPO)})

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from pig.render.api import RasterizerConfig
-from pig.stages._io import read_png
+from pig.data.images import read_png
 from pig.stages.evaluate import EvaluateConfig, evaluate_split
 from pig.stages.render import render_split
 

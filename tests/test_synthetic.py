@@ -20,8 +20,8 @@ from pig.data.synthetic.garment import AROUND
 from pig.data.synthetic.rig import pixel_rays
 from pig.data.synthetic.texture import ValueNoise, body_albedo, garment_albedo
 from pig.stages import generate
-from pig.stages._cli import run_cli
-from pig.stages._outputs import MARKER
+from pig._cli import run_cli
+from pig._outputs import MARKER
 
 J = {name: i for i, name in enumerate(SMPLX_JOINT_NAMES)}
 TOP_LEVEL = {"images", "masks", "calibration.json", "smpl_params.npz", "body_model.npz", "gt_meshes.npz", MARKER}

@@ -17,7 +17,7 @@ import yaml
 from pig.avatar.variants import table_variants, variant_kind
 from pig.config import ConfigError, load_preset
 from pig.stages import tables
-from pig.stages._cli import run_cli
+from pig._cli import run_cli
 from pig.stages.tables import BLANK_ROW, REGION_KEYS, SPLITS, make_table, make_tables, noise_sigmas
 
 REPO = Path(__file__).resolve().parent.parent
@@ -246,7 +246,7 @@ def test_table_targets_schedule_just_the_variants_of_their_table(tmp_path, snake
         levels = sum(1 if v == "lod_1of1" else 2 for v in variants)
         assert job_counts(output) == {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": len(variants),
                                       "render_split": 2 * len(variants), "evaluate": 2 * levels, "make_table": 1}
-        command = next(line for line in output.splitlines() if "pig.stages.tables" in line)
+        command = next(line for line in output.splitlines() if "python -m pig tables " in line)
         assert f"--table {table} " in command and f"--variants {' '.join(variants)} " in command
         assert "--preset 'config/test preset.yaml'" in command
     output = snakemake_run(work, "results/tables/synthetic.csv", "--dry-run", "--quiet", "rules", *settings)

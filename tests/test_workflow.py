@@ -41,7 +41,7 @@ def _snakemake_child(argv: list[str], log: Path) -> None:
     os.dup2(stream.fileno(), 1)
     os.dup2(stream.fileno(), 2)
     sys.stdout = sys.stderr = stream  # pytest's capture objects would otherwise get Snakemake's log
-    # The rules' `python -m pig.stages.*` commands must import this checkout's package.
+    # The rules' `python -m pig STAGE` commands must import this checkout's package.
     os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
     snakemake.cli.main(argv)
 
@@ -162,9 +162,9 @@ def test_shell_commands_quote_every_path(recorded):
         # Every path of this workflow but the tables folder holds a space; an unquoted one splits in two.
         paths = [w for w in words if "/" in w]
         assert paths and all(" " in p or p.startswith("results/tables") for p in paths), command
-        if "pig.stages.tables" not in command:
+        if "python -m pig tables " not in command:
             assert words[words.index("--preset") + 1] == PRESET, command
-    preprocess = shlex.split(next(c for c in commands if "pig.stages.preprocess" in c))
+    preprocess = shlex.split(next(c for c in commands if "python -m pig preprocess " in c))
     values = dict(zip(preprocess, preprocess[1:]))
     assert values["--input"] == f"raw data/{SUBJECT}"
     assert values["--body-model"] == "raw data/SMPLX NEUTRAL.npz"

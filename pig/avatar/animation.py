@@ -7,6 +7,12 @@ A novel pose takes the time embedding of the nearest training timestep and the a
 from __future__ import annotations
 
 import math
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,12 +76,43 @@ def orbit_cameras(count: int, fps: float, centre: np.ndarray, up: np.ndarray, ex
     return np.stack(viewmats), K
 
 
+# OpenCV checks the FourCC against the container's codec tag list and prints this line when it is not there. The
+# WebM muxer has no such list (Matroska stores codec names, not tags), so it prints for every FourCC, yet encodes
+# VP9 as asked: a false alarm, which `_without_tag_notice` keeps off stderr.
+SPURIOUS_TAG_NOTICE = re.compile(r"OpenCV: FFMPEG: tag 0x[0-9a-f]{8}/'.{4}' is not supported with codec id \d+ and "
+                                 r"format 'webm / WebM'\n?")
+
+
+@contextmanager
+def _without_tag_notice() -> Iterator[None]:
+    """Run the block with the process's stderr (file descriptor 2, which OpenCV's C code writes to) captured, then
+    pass on everything it wrote there but OpenCV's spurious WebM tag notice."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as captured:
+            os.dup2(captured.fileno(), 2)
+            try:
+                yield
+            finally:
+                os.dup2(saved, 2)
+                captured.seek(0)
+                text = SPURIOUS_TAG_NOTICE.sub("", captured.read().decode(errors="replace"))
+                if text:
+                    sys.stderr.write(text)
+                    sys.stderr.flush()
+    finally:
+        os.close(saved)
+
+
 class VideoWriter:
     """Frames (H, W, 3) RGB float in [0, 1] -> a WebM (VP9) file; a one-line error when the codec is missing."""
 
     def __init__(self, path: Path, fps: float, width: int, height: int):
         self.path = Path(path)
-        self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*VIDEO_FOURCC), float(fps), (width, height))
+        with _without_tag_notice():
+            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*VIDEO_FOURCC), float(fps),
+                                           (width, height))
         if not self._writer.isOpened():
             raise RuntimeError(f"{self.path}: OpenCV cannot encode {VIDEO_FOURCC} video here (its FFmpeg lacks the encoder); "
                                "write PNG frames instead (--png)")
@@ -127,14 +164,14 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
     """
     from pig.avatar.checkpoint import load_avatar
     from pig.avatar.driver import AvatarDriver
-    from pig.avatar.export import frame_selection
-    from pig.body.motion import Motion, align_motion, capture_frame, read_motion
+    from pig.avatar.export import capture_motion
+    from pig.body.motion import Motion, capture_frame, read_motion
     from pig.config import resolve_device
     from pig.data.exr import write_exr
     from pig.progress import progress_bar
     from pig.render.api import RasterizerConfig
-    from pig.stages._io import write_json, write_png
-    from pig.stages._outputs import build_dir, claim_dir
+    from pig._io import write_json, write_png
+    from pig._outputs import build_dir, claim_dir
 
     rasterizer = rasterizer or RasterizerConfig()
     orbit = orbit or Orbit()
@@ -157,11 +194,8 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
                         betas=None, source=f"{checkpoint} (training timestep 0, still)")
     else:
         motion = read_motion(motion_path, hands_mean=model.body_model.hands_mean.cpu().numpy())  # DNA-style fits
-        chosen = frame_selection(frames, motion.num_frames, str(motion_path))
-        motion = motion.select(slice(int(chosen[0]), int(chosen[-1]) + 1, int(chosen[1] - chosen[0]) if len(chosen) > 1 else 1))
-        if fps is not None:
-            motion = motion.resample(fps)
-        motion = align_motion(motion, model.body_model, driver.refined()[0], target_up, ground, centre, up)
+        motion = capture_motion(motion, model.body_model, driver.refined()[0], (target_up, ground, centre), frames,
+                                fps, up)[0]
 
     count = len(motion.full_pose)
     if camera is not None:

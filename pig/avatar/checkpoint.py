@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 
 from .averaging import WeightAverage
 from .build import build_avatar
@@ -175,7 +175,7 @@ def _loss_terms(state: dict, path: Path) -> dict[str, dict]:
 def _section_defaults() -> dict[str, dict]:
     """Default values of the recorded preset sections' keys."""
     from pig.avatar.config import AvatarConfig
-    from pig.avatar.training import FitConfig
+    from pig.avatar.fit_config import FitConfig
     from pig.field.latent_grid import FieldConfig
     from pig.field.precondition import PrecondConfig
     from pig.render import RasterizerConfig

@@ -21,10 +21,10 @@ import io
 import math
 import sys
 import time
-from contextlib import AbstractContextManager, contextmanager, nullcontext
-from dataclasses import asdict, dataclass, replace
+from contextlib import AbstractContextManager, closing, contextmanager, nullcontext
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Annotated, Callable, Literal
+from typing import Callable
 
 import numpy as np
 import torch
@@ -34,20 +34,22 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
-from pig.avatar.losses import LPIPS_FORMS, apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
+from pig.avatar.fit_config import FitConfig
+from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_writer
+from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
-from pig.config import DEFAULT_PRESET, Bounds, ConfigError, load_preset, load_section, resolve_device
+from pig.config import DEFAULT_PRESET, ConfigError, load_preset, load_section, resolve_device
 from pig.data.capture import Capture
 from pig.data.raw import CaptureError
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
-from pig.metrics.lpips import MIN_SIDE, TrainingLPIPS
+from pig.metrics.lpips import TrainingLPIPS
 from pig.metrics.psnr import psnr
-from pig.progress import progress_bar
+from pig.progress import LOG_INTERVAL_S
 from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
-from pig.stages._io import write_figure, write_text
-from pig.stages._outputs import claim_files
+from pig._io import write_figure, write_text
+from pig._outputs import claim_files
 
 # lpips_term: the LPIPS term's state on every row (pig.avatar.losses.LPIPS_STATES; "on" is the paper's loss).
 # train_s: wall time less this run's held-out evaluations (what the time budget counts; the x axis of the
@@ -57,109 +59,6 @@ from pig.stages._outputs import claim_files
 LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr",
                "heldout_psnr_iterate", "data_wait_ms"]
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
-PRECISIONS = ("float32", "tf32", "bf16")
-
-
-@dataclass
-class FitConfig:
-    """Preset section `fit`; defaults are the paper's (Section 3.6) with every speed lever off."""
-
-    iterations: Annotated[int, Bounds(ge=1)] = 100_000
-    views: Annotated[int, Bounds(ge=1)] = 4  # cameras per timestep per iteration
-    timesteps: int = 5  # timesteps per iteration
-    lr_decoders: float = 1e-3
-    lr_refine: float = 1e-4
-    # Learning-rate schedule over the run (every group): linear warm-up from 0 over `lr_warmup` iterations,
-    # then exponential decay to `lr_final` times the rate at the end (1.0: constant rates, the paper's).
-    # With `time_budget_s` the run's progress is the larger of its iteration and time fractions.
-    lr_warmup: int = 0
-    lr_final: float = 1.0
-    # Weight averaging (pig.avatar.averaging): from progress `average_start` on, an EMA with `average_decay` of the
-    # optimised tensors; held-out evaluations and avatar.pt use it. 0: off (the last iterate, the paper's).
-    average_decay: float = 0.0
-    average_start: float = 0.5
-    weight_l1: float = 8.0
-    weight_ssim: float = 2.0
-    weight_lpips: float = 2.0
-    lpips_net: str = "vgg"
-    lpips_backbone_weights: str | None = None  # None: the torch hub cache
-    lpips_linear_weights: str | None = None
-    # "random": a seeded, randomly initialised LPIPS network, no file read; to time the term where the
-    # weights are absent (benchmarks only: the loss is not the paper's, and the tables say so).
-    lpips_weights: Literal["pretrained", "random"] = "pretrained"
-    # What the LPIPS term sees (pig.avatar.losses.lpips_views): "full" frames, or "mmlphuman", MMLPHuman's
-    # `lpips_crop`-pixel square of each view's mask box, resized, and random windows of it from progress
-    # `lpips_patches_from` on (1: never). The term is 0 before progress `lpips_start` (either form). `lpips_views`:
-    # the term on that many views of each loss evaluation, drawn at random (0: all; a different loss, off in `paper`).
-    lpips_form: Literal["full", "mmlphuman"] = "full"
-    lpips_crop: int = 512
-    lpips_start: float = 0.0
-    lpips_patches_from: float = 1.0
-    lpips_views: int = 0
-    band_radius_px: float = 3.0  # silhouette band radius at `band_reference_height` rows (THuman4)
-    band_reference_height: int = 1150
-    sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
-    eval_every: Annotated[int, Bounds(ge=1)] = 1000  # held-out novel-view PSNR every this many iterations (and at the end)
-    eval_frames: int = 4  # training frames rendered from the novel-view cameras
-    checkpoint_minutes: float = 5.0
-    # Stop after this many seconds of training (the held-out evaluations not counted), before `iterations`
-    # if it comes first: the fixed-budget runs of benchmarks/fit_gpu.py. None: no limit.
-    time_budget_s: float | None = None
-    seed: int = 0
-    # Torch threads on the CPU; 0 keeps torch's default. One thread avoids OpenMP spin-waiting when
-    # the cores are shared (measured 10x faster under contention, benchmarks/NOTES.md).
-    cpu_threads: int = 0
-    # Training views are streamed (pig.avatar.batches): `loader_workers` threads decode them `prefetch`
-    # iterations ahead of the one trained on, through an LRU cache of `view_cache` decoded views. Host memory
-    # holds at most view_cache + (prefetch + 1) x views x timesteps decoded views (4 bytes a pixel), however
-    # long the capture. Views are drawn uniformly, so the cache saves decoding only where it holds much of
-    # the training set: 256 holds all of the cpu-demo capture's (180) and costs 1.5 GiB at THuman4's
-    # 1330 x 1150 (6.1 MB a view), a tenth of the fit rule's mem_mb.
-    view_cache: int = 256
-    prefetch: int = 2
-    loader_workers: int = 4
-    # Speed levers (module docstring).
-    precision: Literal["float32", "tf32", "bf16"] = "float32"
-    compile: bool = False
-    compile_posing: bool = False
-    batched_render: bool = False
-    fused_adam: bool = False
-    log_every: int = 1
-    host_band: bool = False
-    lpips_bf16_head: bool = False
-    lpips_compile: bool = False
-    lpips_crop_sliced: bool = False
-
-    def __post_init__(self):
-        for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),
-                            ("lr_warmup", 0), ("lpips_views", 0)):
-            if getattr(self, name) < least:
-                raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
-        if self.precision not in PRECISIONS:
-            raise ConfigError(f"fit.precision must be one of {PRECISIONS}, found {self.precision!r}")
-        if not 0 <= self.average_decay < 1:
-            raise ConfigError(f"fit.average_decay must lie in [0, 1), found {self.average_decay}")
-        if not 0 <= self.average_start <= 1:
-            raise ConfigError(f"fit.average_start must lie in [0, 1], found {self.average_start}")
-        if not 0 < self.lr_final <= 1:
-            raise ConfigError(f"fit.lr_final must lie in (0, 1], found {self.lr_final}")
-        if self.lpips_weights not in ("pretrained", "random"):
-            raise ConfigError(f"fit.lpips_weights must be 'pretrained' or 'random', found {self.lpips_weights!r}")
-        if self.lpips_weights == "random" and (self.lpips_backbone_weights or self.lpips_linear_weights):
-            raise ConfigError("fit.lpips_weights is 'random', which reads no weights file, but fit.lpips_backbone_weights "
-                              "or fit.lpips_linear_weights is set; unset them or use 'pretrained'")
-        if self.lpips_form not in LPIPS_FORMS:
-            raise ConfigError(f"fit.lpips_form must be one of {LPIPS_FORMS}, found {self.lpips_form!r}")
-        for name in ("lpips_start", "lpips_patches_from"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ConfigError(f"fit.{name} must lie in [0, 1] (a fraction of the run), found {getattr(self, name)}")
-        if self.lpips_crop < MIN_SIDE.get(self.lpips_net, 32):
-            raise ConfigError(f"fit.lpips_crop must be at least {MIN_SIDE.get(self.lpips_net, 32)} pixels for "
-                              f"{self.lpips_net!r}, found {self.lpips_crop}")
-        if self.time_budget_s is not None and not self.time_budget_s > 0:
-            raise ConfigError(f"fit.time_budget_s must be positive or null, found {self.time_budget_s}")
-
-
 def lr_factor(progress: float, iteration: int, warmup: int, final: float) -> float:
     """Multiplier of every base learning rate: warm-up over `warmup` iterations, then exp decay to `final` at
     `progress` 1 (progress in [0, 1] is the fraction of the run done)."""
@@ -334,10 +233,12 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
 def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, variant: str = "pig",
         device: torch.device | str = "cpu", on_iteration: Callable[[int], None] | None = None,
         phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False,
-        threads: int | None = None) -> Path:
+        threads: int | None = None, progress_s: float = LOG_INTERVAL_S, tensorboard: bool = False) -> Path:
     """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
 
-    `threads`: torch CPU threads of a CPU fit in place of the preset's `fit.cpu_threads`.
+    `threads`: torch CPU threads of a CPU fit in place of the preset's `fit.cpu_threads`. A progress line
+    (pig.avatar.fit_progress) goes to stderr every `progress_s` seconds and at each held-out evaluation, which
+    also redraws train_log.png; `tensorboard` adds TensorBoard scalars under `output_dir`/tensorboard/.
 
     Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
     or with `overwrite`.
@@ -351,14 +252,14 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     callers_threads = torch.get_num_threads()
     try:
         return _fit(Path(capture_dir), Path(output_dir), preset_name, variant, resolve_device(str(device), "--device"),
-                    on_iteration, phase or (lambda name: nullcontext()), overwrite, threads)
+                    on_iteration, phase or (lambda name: nullcontext()), overwrite, threads, progress_s, tensorboard)
     finally:
         torch.set_num_threads(callers_threads)
 
 
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
          on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
-         overwrite: bool, threads: int | None) -> Path:
+         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool) -> Path:
     preset = load_preset(preset_name)
     overrides = variant_overrides(preset, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -373,7 +274,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     raster = load_section(preset, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
-    claim_files(output_dir, OUTPUT_FILES, "fit", (capture_dir,), overwrite)
+    claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"
     log_path = output_dir / "train_log.csv"
@@ -436,7 +337,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
 
     with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers,
                     loss.band_radius if fit_cfg.host_band else None) as source, \
-            _matmul_precision(fit_cfg.precision):
+            _matmul_precision(fit_cfg.precision), \
+            closing(FitProgress(str(output_dir), fit_cfg.iterations, start, progress_s,
+                                tensorboard_writer(output_dir / TENSORBOARD_DIR) if tensorboard else None)) as report:
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
@@ -451,6 +354,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "train_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
                      "lpips_term": lpips_record["state"], **evaluate_held_out(), "data_wait_ms": ""}]
+            _plot_log(output_dir / "train_log.png", rows)
+            report.record(rows[0])
+            report.print_line(0, 0.0)
 
         started = time.perf_counter()
         evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
@@ -474,16 +380,18 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             window, window_waits = {}, []
             return row
 
-        iteration = start
-        progress = progress_bar(range(start, fit_cfg.iterations), initial=start, total=fit_cfg.iterations, desc="fit",
-                                leave=False)
-        for i in progress:
+        def fraction_done(i: int) -> tuple[float, float]:
+            """(training seconds so far, the run's fraction done before iteration i: iterations or time budget)."""
             trained = wall_before + time.perf_counter() - started - evaluating
-            done = i / fit_cfg.iterations
-            if fit_cfg.time_budget_s is not None:
-                if trained >= fit_cfg.time_budget_s:
-                    break
-                done = max(done, trained / fit_cfg.time_budget_s)
+            if fit_cfg.time_budget_s is None:
+                return trained, i / fit_cfg.iterations
+            return trained, max(i / fit_cfg.iterations, trained / fit_cfg.time_budget_s)
+
+        iteration = start
+        for i in range(start, fit_cfg.iterations):
+            trained, done = fraction_done(i)
+            if fit_cfg.time_budget_s is not None and trained >= fit_cfg.time_budget_s:
+                break
             if grid_delay and i == grid_delay:
                 start_grid_smoothing()
             factor = lr_factor(done, i, fit_cfg.lr_warmup, fit_cfg.lr_final)
@@ -516,9 +424,11 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 if evaluate:
                     t0 = time.perf_counter()
                     row.update(evaluate_held_out())
+                    _plot_log(output_dir / "train_log.png", rows + [row])  # to watch the fit: redrawn at each evaluation
                     evaluating += time.perf_counter() - t0
-                    progress.set_postfix(psnr=f"{row['heldout_psnr']:.2f}", refresh=False)
                 rows.append(row)
+                report.record(row)
+            report.step(iteration, min(fraction_done(iteration)[1], 1.0), evaluate)
             if save:
                 checkpoint(state_path, iteration, wall_before + time.perf_counter() - started)
                 last_save = time.perf_counter()
@@ -530,6 +440,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             rows.append(window_row(iteration, ""))
         if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
             rows[-1].update(evaluate_held_out())
+            report.record(rows[-1])
+        report.finish(iteration)
     if waits:
         per_iteration = (time.perf_counter() - started - evaluating) / len(waits)
         print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 
 from .model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, BodyModel
 from .npz import read_npz

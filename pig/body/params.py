@@ -12,7 +12,7 @@ import warnings
 
 import numpy as np
 
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 
 from .skeleton import NUM_JOINTS
 from .npz import read_npz

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from scipy.optimize import nnls
 from skimage.measure import marching_cubes
 
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 
 from .model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, SMPLX_JOINT_NAMES, SMPLX_PARENTS
 

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from pig._io import atomic_path
 from pig.data.images import MAX_PIXELS
 from pig.inputs import require_regular_file
-from pig.stages._io import atomic_path
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 
 from pig.body.npz import read_npz
 from pig.data.raw import CaptureError
-from pig.stages._io import atomic_path
+from pig._io import atomic_path
 
 GT_MESHES = "gt_meshes.npz"  # written by pig.data.synthetic.generate_capture, carried along by preprocess
 SPLATS = "splats.npz"  # written by the render stage beside each renders/{split}/lod{l}/ when the capture has GT_MESHES

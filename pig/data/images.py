@@ -142,3 +142,8 @@ def read_image(path: str | Path, flags: int = cv2.IMREAD_COLOR, max_pixels: int 
     except OSError as err:
         raise CaptureError(f"{path}: cannot read the image file: {err.strerror or err}") from None
     return decode_image(data, str(path), flags, max_pixels)
+
+
+def read_png(path: str | Path) -> np.ndarray:
+    """8-bit RGB PNG -> (H, W, 3) float32 in [0, 1], strictly (a cut-off render is an error naming the file)."""
+    return cv2.cvtColor(read_image(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255

@@ -22,8 +22,8 @@ from pig.body.model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, BodyModel
 from pig.data.dna import ANNOTS_SUFFIX, CALIBRATION, CAMERA_GROUPS, MASKS, SMPLX, bgr_matrix_to_rgb, model_gender
 from pig.data.raw import CaptureError, RawCapture
 from pig.progress import progress_bar
-from pig.stages._cli import add_common_arguments, run_cli
-from pig.stages._io import atomic_path
+from pig._cli import add_common_arguments, run_cli
+from pig._io import atomic_path
 
 DNA_NUM_5MP = 48  # cams 0..47 are Camera_5mp in the released data, the rest Camera_12mp
 # Actor facts an export cannot know; override with `actor=` / `--actor KEY=VALUE`. The download page

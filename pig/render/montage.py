@@ -49,7 +49,7 @@ def error_map(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 def montage_views(capture, split_dir: Path, split: str, count: int = 4) -> list[MontageView]:
     """Ground truth, finest-LOD render and error of `count` views of `split` in the loaded `capture`."""
-    from pig.stages._io import read_png
+    from pig.data.images import read_png
 
     level, _ = finest_level(split_dir)
     views = capture.views(split)

@@ -9,12 +9,10 @@ import argparse
 import math
 from pathlib import Path
 
-import torch
-
 from pig.avatar.animation import Orbit, animate
 from pig.config import load_preset, load_section
 from pig.render.api import RasterizerConfig
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
+from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 
 MAX_FPS = 1000.0
 MAX_SECONDS = 3600.0  # an hour of a still pose; motions bring their own length
@@ -38,7 +36,8 @@ def _in_range(kind: type, low: float, high: float, low_open: bool = False):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.animate", description=__doc__.split("\n")[0])
+    parser = stage_parser("animate", __doc__, "pig animate --checkpoint results/synthetic/subject00/pig/avatar.pt --motion "
+                                              "pig/data/motions/demo.npz --output results/synthetic/subject00/pig/animations/demo")
     parser.add_argument("--checkpoint", type=Path, required=True, help="avatar.pt of the fit stage")
     parser.add_argument("--motion", type=Path, default=None,
                         help="motion npz: AMASS (poses (N, 156) SMPL-H or (N, 165) SMPL-X, trans, mocap_framerate), "
@@ -64,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--png", action="store_true", help="also write frames/NNNNN.png (RGBA)")
     parser.add_argument("--exr", action="store_true", help="also write frames/NNNNN.exr (R, G, B, A, depth Z)")
     add_preset_argument(parser, "its rasterizer section")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
+    add_device_argument(parser)
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true", help="replace an --output folder the animate stage did not write")
     args = parser.parse_args(argv)

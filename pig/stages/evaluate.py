@@ -11,7 +11,6 @@ stage's splats (lod{l}/splats.npz; pig.metrics.geometry) in the summary. Real ca
 """
 from __future__ import annotations
 
-import argparse
 import math
 import re
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ import torch
 
 from pig.config import Bounds, load_preset, load_section, resolve_device
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
+from pig.data.images import read_png
 from pig.data.raw import CaptureError
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
 from pig.metrics.geometry import ground_truth_geometry
@@ -33,9 +33,9 @@ from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssi
 from pig.metrics.ssim import ssim, ssim_map
 from pig.metrics.weights import WeightsMissing
 from pig.progress import progress_bar
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
-from pig.stages._io import read_png, read_record, write_json, write_text
-from pig.stages._outputs import claim_files
+from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
+from pig._io import read_record, write_json, write_text
+from pig._outputs import claim_files
 
 
 @dataclass
@@ -215,18 +215,21 @@ def _splat_track(level_dir: Path, capture, split: str) -> SplatTrack:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.evaluate", description=__doc__.splitlines()[0])
+    parser = stage_parser("evaluate", __doc__, "pig evaluate --capture results/synthetic/subject00/capture --renders "
+                                               "results/synthetic/subject00/pig/renders/novel_view --split novel_view --output results/synthetic/subject00/pig/metrics")
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory")
     parser.add_argument("--renders", type=Path, required=True, help="renders/{split} directory of the render stage")
-    parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"])
+    parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"],
+                        help="the split the renders are of")
     parser.add_argument("--output", type=Path, required=True, help="metrics directory ({split}_lod{l}.csv/.json go here)")
     parser.add_argument("--lod", type=int, nargs="*", default=None, help="levels to evaluate (default: all rendered)")
     add_preset_argument(parser, "its evaluate section")
+    add_device_argument(parser, None, "the preset's evaluate.device")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace files of the same names in an --output folder the evaluate stage did not write")
     args = parser.parse_args(argv)
-    cfg = load_section(load_preset(args.preset), "evaluate", EvaluateConfig)
+    cfg = load_section(load_preset(args.preset), "evaluate", EvaluateConfig, {"device": args.device} if args.device else None)
     evaluate_split(args.capture, args.renders, args.split, args.output, cfg, args.lod, args.overwrite)
     return 0
 

@@ -1,37 +1,44 @@
 """Fit stage: optimise an avatar on the train split of a preprocessed capture; resumable, logged.
 
-Writes avatar.pt, train_log.csv and train_log.png into --output; the optimisation itself is
-pig.avatar.training.fit (Section 3.5, Eq. 15).
+Writes avatar.pt, train_log.csv and train_log.png (redrawn at each held-out evaluation) into --output, a progress
+line (iteration, loss, held-out PSNR, time left) to stderr every --progress-seconds, and with --tensorboard the
+scalars for TensorBoard; the optimisation itself is pig.avatar.training.fit (Section 3.5, Eq. 15).
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
-import torch
-
 from pig.avatar.training import fit
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
+from pig.progress import LOG_INTERVAL_S
+from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.fit", description=__doc__.split("\n")[0])
+    parser = stage_parser("fit", __doc__, "pig fit --capture results/synthetic/subject00/capture --output results/synthetic/subject00/pig --preset test "
+                                          "--device cpu")
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory (results/.../capture)")
     parser.add_argument("--output", type=Path, required=True, help="variant directory; gets avatar.pt, train_log.csv/.png")
     add_preset_argument(parser, "its avatar, fit, field, precond, rasterizer and variants sections")
     parser.add_argument("--variant", default="pig", help="method variant from the preset's `variants` section")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", choices=["cpu", "cuda"])
+    add_device_argument(parser)
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads of a CPU fit (default: the preset's fit.cpu_threads; the workflow passes "
                              "the rule's threads)")
+    parser.add_argument("--progress-seconds", type=float, default=LOG_INTERVAL_S, metavar="SECONDS",
+                        help="seconds between progress lines (iteration, loss, held-out PSNR, time left) on stderr "
+                             f"(default: {LOG_INTERVAL_S:g}; --quiet: none)")
+    parser.add_argument("--tensorboard", action="store_true",
+                        help="also write TensorBoard scalars to --output/tensorboard/ (needs pip install 'pig[tensorboard]')")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace avatar.pt, checkpoint.pt, train_log.* in an --output folder the fit stage did not write")
     args = parser.parse_args(argv)
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be at least 1, found {args.threads}")
+    if not args.progress_seconds > 0:
+        parser.error(f"--progress-seconds must be positive, found {args.progress_seconds}")
     path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite,
-               threads=args.threads)
+               threads=args.threads, progress_s=args.progress_seconds, tensorboard=args.tensorboard)
     print(path)
     return 0
 

@@ -11,18 +11,17 @@ from pathlib import Path
 
 from pig.config import load_preset, load_section
 from pig.data.synthetic import SyntheticConfig, generate_capture
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
+from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.generate", description=__doc__.splitlines()[0])
+    parser = stage_parser("generate", __doc__, "pig generate --output results/synthetic/data/subject00 --preset test")
     parser.add_argument("--output", required=True, type=Path, help="subject folder to create (THuman4 layout)")
     add_preset_argument(parser, "its synthetic section")
     parser.add_argument("--seed", type=int, default=None, help="override synthetic.seed")
     parser.add_argument("--workers", type=int, default=None, help="override synthetic.workers (render processes)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing non-empty output folder that is not an earlier generated capture")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_common_arguments(parser)
     return parser.parse_args(argv)
 

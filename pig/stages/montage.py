@@ -5,17 +5,17 @@ The picture is pig.render.montage.split_montage (finest LOD; error on a fixed co
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from pig.render.montage import split_montage
-from pig.stages._cli import add_common_arguments, run_cli
-from pig.stages._io import write_figure
-from pig.stages._outputs import claim_files
+from pig._cli import add_common_arguments, run_cli, stage_parser
+from pig._io import write_figure
+from pig._outputs import claim_files
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.montage", description=__doc__.splitlines()[0])
+    parser = stage_parser("montage", __doc__, "pig montage --capture results/synthetic/subject00/capture --renders results/synthetic/subject00/pig/renders/novel_view "
+                                              "--split novel_view --output results/synthetic/subject00/pig/montage/novel_view.png")
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory")
     parser.add_argument("--renders", type=Path, required=True, help="renders/{split} directory of the render stage")
     parser.add_argument("--split", required=True, help="split the renders show (novel_view, novel_pose)")

@@ -35,9 +35,9 @@ from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import MASK_THRESHOLD, Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.progress import progress_bar
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
-from pig.stages._io import atomic_path, write_json
-from pig.stages._outputs import claim_dir, resumable_dir
+from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
+from pig._io import atomic_path, write_json
+from pig._outputs import claim_dir, resumable_dir
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
 HELD_OUT = ("novel_view", "novel_pose")
@@ -317,7 +317,8 @@ def _dataset(value: str | None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.preprocess", description=__doc__.split("\n")[0])
+    parser = stage_parser("preprocess", __doc__, "pig preprocess --input results/synthetic/data/subject00 "
+                                                 "--output results/synthetic/subject00/capture --preset test")
     parser.add_argument("--format", choices=sorted(FORMATS), default=None,
                         help="capture format (default: the dataset's `format`, else thuman4)")
     parser.add_argument("--input", required=True, type=Path, help="raw subject folder (e.g. data/thuman4/subject00)")
@@ -330,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="SMPL-X model npz (default: the dataset's body_model, else body_model.npz in --input)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier preprocessed capture")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--no-progress", dest="quiet", action="store_true", help=argparse.SUPPRESS)  # the old --quiet
     add_common_arguments(parser)
     args = parser.parse_args(argv)
     preset = load_preset(args.preset)
@@ -345,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
     options = {"body_model": body_model} if capture_format(fmt).needs_body_model else {}
     raw = open_capture(fmt, args.input, **options)
     report = preprocess_capture(raw, args.output, cfg, body_model, split_cfg, args.subject or args.input.name,
-                                split_source, progress=not args.no_progress, overwrite=args.overwrite,
+                                split_source, progress=not args.quiet, overwrite=args.overwrite,
                                 inputs=(args.input,))
     worst = min(report["projection_check"]["cameras"].items(), key=lambda item: item[1]["iou"])
     print(f"preprocess: wrote {report['images']} images of {report['cameras']} cameras to {args.output} "

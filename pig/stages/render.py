@@ -10,7 +10,6 @@ work (nearest timestep, body, transport, decoders, rasterization) per LOD for th
 """
 from __future__ import annotations
 
-import argparse
 import platform
 import time
 from dataclasses import dataclass
@@ -26,9 +25,9 @@ from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
 from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
-from pig.stages._io import write_json, write_png
-from pig.stages._outputs import build_dir, claim_dir
+from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
+from pig._io import write_json, write_png
+from pig._outputs import build_dir, claim_dir
 from pig.stages.evaluate import EvaluateConfig
 
 BLACK = (0.0, 0.0, 0.0)  # evaluation background (paper protocol: black, ground truth masked)
@@ -183,18 +182,21 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.render", description=__doc__.splitlines()[0])
+    parser = stage_parser("render", __doc__, "pig render --checkpoint results/synthetic/subject00/pig/avatar.pt --capture results/synthetic/subject00/capture "
+                                             "--split novel_view --output results/synthetic/subject00/pig/renders/novel_view")
     parser.add_argument("--checkpoint", type=Path, required=True, help="avatar.pt of the fit stage")
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture directory")
-    parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"])
+    parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"],
+                        help="the capture's split to render (split.json)")
     parser.add_argument("--output", type=Path, required=True, help="renders/{split} directory to write")
     add_preset_argument(parser, "its evaluate and rasterizer sections")
+    add_device_argument(parser, None, "the preset's evaluate.device")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier render of a split")
     args = parser.parse_args(argv)
     preset = load_preset(args.preset)
-    cfg = load_section(preset, "evaluate", EvaluateConfig)
+    cfg = load_section(preset, "evaluate", EvaluateConfig, {"device": args.device} if args.device else None)
     rasterizer = load_section(preset, "rasterizer", RasterizerConfig)
     render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer, args.overwrite)
     return 0

@@ -18,7 +18,6 @@ Markdown shows them in the FID cell, as `123.40 (N=36, biased)`.
 """
 from __future__ import annotations
 
-import argparse
 import math
 from pathlib import Path
 
@@ -28,9 +27,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli  # noqa: E402
-from pig.stages._io import read_record, write_figure, write_text  # noqa: E402
-from pig.stages._outputs import claim_files  # noqa: E402
+from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser  # noqa: E402
+from pig._io import read_record, write_figure, write_text  # noqa: E402
+from pig._outputs import claim_files  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "fid")
@@ -331,7 +330,7 @@ def make_table(table: str, dataset: str, summaries: list[Path], variants: list[s
 
 def noise_sigmas(preset: str, variants: list[str]) -> dict[str, float]:
     """{variant: fit.sigma_body} of `variants` in `preset` (a name or a YAML path), overrides applied."""
-    from pig.avatar.training import FitConfig  # here: only the noise table needs it (and torch)
+    from pig.avatar.fit_config import FitConfig  # here: only the noise table needs it
     from pig.avatar.variants import variant_overrides
     from pig.config import load_preset, load_section
 
@@ -340,8 +339,9 @@ def noise_sigmas(preset: str, variants: list[str]) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.tables", description=__doc__.splitlines()[0])
-    parser.add_argument("--dataset", required=True)
+    parser = stage_parser("tables", __doc__, "pig tables --dataset synthetic --summaries "
+                                             "results/synthetic/subject00/pig/metrics/novel_view_lod0.json --variants pig --output results/tables")
+    parser.add_argument("--dataset", required=True, help="dataset name, the tables' file names (e.g. synthetic)")
     parser.add_argument("--table", choices=TABLES, default="main",
                         help="main: {dataset}.csv, _lod.csv and _training.png; else {dataset}_{table}.csv (default main)")
     parser.add_argument("--summaries", type=Path, nargs="+", required=True, help="metrics/{split}_lod{l}.json files")

@@ -24,7 +24,7 @@ rule animate:
         # Not used by the command: a change reruns the rule (params trigger).
         settings=preset_settings("rasterizer"),
     shell:
-        "python -m pig.stages.animate --checkpoint {input.checkpoint:q} --output {output:q} {params.motion} "
+        "python -m pig animate --checkpoint {input.checkpoint:q} --output {output:q} {params.motion} "
         "--preset {params.preset:q} {params.options} > {log:q} 2>&1"
 
 

@@ -1,7 +1,8 @@
 # Shared helpers of the rules (workflow/rules/*.smk hold rules only): dataset lookup, the compute preset and the
 # resources and conda environment it gives each rule, input functions, and the settings hashes that make Snakemake
-# rerun a rule when what its stage reads changes. Every rule calls a `python -m pig.stages.*` CLI. Nothing here
-# imports torch: it would cost every `snakemake` start seconds (tests/test_workflow.py checks).
+# rerun a rule when what its stage reads changes. Every rule calls a stage as `python -m pig STAGE` (the `pig`
+# command, which the conda environment does not install). Nothing here imports torch: it would cost every
+# `snakemake` start seconds (tests/test_workflow.py checks).
 import hashlib
 import json
 import os

@@ -28,7 +28,7 @@ rule render_split:
         # Not used by the command: a change reruns the rule (params trigger).
         settings=preset_settings("evaluate", "rasterizer"),
     shell:
-        "python -m pig.stages.render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
+        "python -m pig render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
         "--split {wildcards.split:q} --output {output:q} --preset {params.preset:q} > {log:q} 2>&1"
 
 
@@ -59,7 +59,7 @@ rule evaluate:
         # Not used by the command: a change reruns the rule (params trigger).
         settings=preset_settings("evaluate"),
     shell:
-        "python -m pig.stages.evaluate --capture {params.capture:q} --renders {input.renders:q} "
+        "python -m pig evaluate --capture {params.capture:q} --renders {input.renders:q} "
         "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} "
         "--preset {params.preset:q} > {log:q} 2>&1"
 
@@ -105,7 +105,7 @@ rule make_tables:
         variants=config["variants"],
         output=lambda wildcards, output: str(Path(output.table).parent),
     shell:
-        "python -m pig.stages.tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
+        "python -m pig tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
         "--train-logs {input.train_logs:q} --variants {params.variants:q} --output {params.output:q} "
         "> {log:q} 2>&1"
 
@@ -139,6 +139,6 @@ rule make_table:
         output=lambda wildcards, output: str(Path(output.table).parent),
         preset=config["preset"],
     shell:
-        "python -m pig.stages.tables --table {wildcards.table:q} --dataset {wildcards.dataset:q} "
+        "python -m pig tables --table {wildcards.table:q} --dataset {wildcards.dataset:q} "
         "--summaries {input.summaries:q} --variants {params.variants:q} --preset {params.preset:q} "
         "--output {params.output:q} > {log:q} 2>&1"

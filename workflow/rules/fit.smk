@@ -1,6 +1,7 @@
 # Fit one avatar per (dataset, subject, variant) on the preprocessed capture's train split.
 # A killed fit resumes from {variant}/checkpoint.pt when the rule runs again. Reruns when the preset sections the
-# fit reads or the variant's overrides change (params.settings).
+# fit reads or the variant's overrides change (params.settings). Its progress lines (iteration, loss, held-out PSNR,
+# time left) go to the log and, through `tee`, to the console (the shell's pipefail keeps the fit's exit status).
 
 
 rule fit_avatar:
@@ -28,5 +29,5 @@ rule fit_avatar:
             "avatar", "fit", "field", "precond", "rasterizer", variant=wildcards.variant
         ),
     shell:
-        "python -m pig.stages.fit --capture {params.capture:q} --output {params.output:q} "
-        "--preset {params.preset:q} --variant {wildcards.variant:q} --threads {threads} > {log:q} 2>&1"
+        "python -m pig fit --capture {params.capture:q} --output {params.output:q} "
+        "--preset {params.preset:q} --variant {wildcards.variant:q} --threads {threads} 2>&1 | tee {log:q}"

@@ -23,5 +23,5 @@ rule generate_capture:
         # Not used by the command: a changed `synthetic` section changes this and so reruns the rule.
         settings=repr(synthetic_config()),
     shell:
-        "python -m pig.stages.generate --output {output:q} --preset {params.preset:q} --workers {threads} "
+        "python -m pig generate --output {output:q} --preset {params.preset:q} --workers {threads} "
         "--overwrite --quiet > {log:q} 2>&1"

@@ -30,6 +30,6 @@ rule preprocess_capture:
         settings=preprocess_settings,
         raw=raw_manifest,
     shell:
-        "python -m pig.stages.preprocess --format {params.format:q} --input {params.root:q} "
+        "python -m pig preprocess --format {params.format:q} --input {params.root:q} "
         "--output {params.output:q} --preset {params.preset:q} --dataset {params.dataset:q} "
         "--subject {wildcards.subject:q} {params.body_model:q} > {log:q} 2>&1"

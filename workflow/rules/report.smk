@@ -28,5 +28,5 @@ rule montage_split:
     params:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
     shell:
-        "python -m pig.stages.montage --capture {params.capture:q} --renders {input.renders:q} "
+        "python -m pig montage --capture {params.capture:q} --renders {input.renders:q} "
         "--split {wildcards.split:q} --output {output:q} > {log:q} 2>&1"

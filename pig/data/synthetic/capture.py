@@ -19,8 +19,8 @@ from pig.body.npz import read_npz
 from pig.body.standin import make_standin_arrays
 from pig.data.raw import RawCamera
 from pig.progress import progress_bar
-from pig.stages._io import write_json
-from pig.stages._outputs import build_dir, claim_dir
+from pig._io import write_json
+from pig._outputs import build_dir, claim_dir
 
 from .config import SyntheticConfig, SyntheticError
 from .garment import build_skirt, pose_skirt, secondary_motion

@@ -1,4 +1,5 @@
-"""Atomic file and folder writing for the stages and benchmarks: write a temporary name, then rename.
+"""Atomic file and folder writing for every layer (data, body, avatar, stages) and the benchmarks: write a
+temporary name, then rename. At the bottom of the package's layers: it imports nothing of pig.
 
 A killed stage never leaves a half-written PNG, CSV, JSON, plot or folder under its final name; the
 hidden temporaries a kill leaves carry the writer's process id, so the next run can remove them.
@@ -171,10 +172,3 @@ def write_figure(path: str | Path, figure, dpi: float | None = None) -> None:
             figure.savefig(tmp, dpi=dpi)
     finally:
         plt.close(figure)
-
-
-def read_png(path: str | Path) -> np.ndarray:
-    """8-bit RGB PNG -> (H, W, 3) float32 in [0, 1]."""
-    from pig.data.images import read_image  # strict: a cut-off render is an error naming the file, not grey rows
-
-    return cv2.cvtColor(read_image(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(np.float32) / 255

@@ -17,7 +17,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from pig.stages._io import _temporary_dir, atomic_dir, remove_orphans, replace_dir, write_json
+from pig._io import _temporary_dir, atomic_dir, remove_orphans, replace_dir, write_json
 
 MARKER = ".pig-stage"
 PARTIAL_RECORD = ".pig-partial"  # in a resumable work folder: its stage and the settings its files were made with

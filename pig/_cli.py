@@ -1,8 +1,10 @@
 """Command-line entry points: an error is one line on stderr, not a traceback, unless one is asked for.
 
-Every `python -m pig...` entry point ends with `raise SystemExit(run_cli(main))` and adds the shared options
-with `add_common_arguments(parser)`; a stage that reads a compute preset takes it with `add_preset_argument`. An exception from `main` becomes one line, `<stage>: error: <message>`,
-and exit status 1:
+Every stage builds its parser with `stage_parser` (prog `pig <stage>`, an example in its help), ends with
+`raise SystemExit(run_cli(main))`, and adds the shared options with `add_common_arguments(parser)` (`--quiet`,
+`--traceback`); a stage that reads a compute preset takes it with `add_preset_argument`, one that computes on a
+device takes `--device auto|cpu|cuda|cuda:N` with `add_device_argument`. An exception from `main` becomes one
+line, `<stage>: error: <message>`, and exit status 1:
 - bad input or a bad environment prints its message as it is: the project's own errors (ConfigError,
   CaptureError, ... all ValueErrors), any other ValueError, OSError (a missing, unreadable or unwritable
   file), and a KeyError whose argument is a sentence (`raise KeyError(f"{path}: no split ...")`);
@@ -21,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pig.config import DEFAULT_PRESET
+from pig.progress import set_quiet
 
 DEBUG_VARIABLE = "PIG_DEBUG"
 TRACEBACK_HINT = f"(run with --traceback or {DEBUG_VARIABLE}=1 for the full traceback)"
@@ -41,10 +44,53 @@ class _TracebackFlag(argparse.Action):
         setattr(namespace, self.dest, True)
 
 
+class _QuietFlag(argparse.Action):
+    """`--quiet`: a store-true flag that also silences pig.progress (bars and the fit's progress lines)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=False, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        set_quiet(True)
+        setattr(namespace, self.dest, True)
+
+
+def stage_parser(stage: str, doc: str, example: str) -> argparse.ArgumentParser:
+    """The parser of `pig <stage>`: the first line of the module docstring `doc` as its description, and
+    `example` (a whole command line, `pig <stage> ...`) shown after the options."""
+    return argparse.ArgumentParser(prog=f"pig {stage}", description=doc.strip().splitlines()[0],
+                                   epilog=f"example:\n  {example}", formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
 def add_common_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the options every entry point shares: `--traceback`."""
+    """Add the options every entry point shares: `--quiet` and `--traceback`. Progress is on until `--quiet`
+    is parsed (a new parser is a new run)."""
+    set_quiet(False)
+    parser.add_argument("--quiet", action=_QuietFlag,
+                        help="no progress output (bars, the fit's progress lines); results, warnings and errors still print")
     parser.add_argument("--traceback", action=_TracebackFlag,
                         help=f"on an error, show the full Python traceback instead of one line (or set {DEBUG_VARIABLE}=1)")
+    return parser
+
+
+DEVICE_FORM = "auto, cpu, cuda or cuda:N"
+
+
+def device_name(text: str) -> str:
+    """An argparse type: `text` if it is auto, cpu, cuda or cuda:N (N a visible CUDA device's index, counted
+    among those CUDA_VISIBLE_DEVICES leaves), else an error naming the accepted forms. Whether this machine has
+    that device is `pig.config.resolve_device`'s check, when the stage starts."""
+    value = text.strip().lower()
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", value):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {DEVICE_FORM}")
+    return value
+
+
+def add_device_argument(parser: argparse.ArgumentParser, default: str | None = "auto",
+                        default_note: str = "auto: CUDA when available, else the CPU") -> argparse.ArgumentParser:
+    """Add `--device auto|cpu|cuda|cuda:N` (`default`; None: the stage takes it from its preset, `default_note`)."""
+    parser.add_argument("--device", type=device_name, default=default, metavar="auto|cpu|cuda|cuda:N",
+                        help=f"where to compute: {DEVICE_FORM} (default: {default_note})")
     return parser
 
 
