@@ -32,6 +32,7 @@ from pig.body.params import ParamsError, SmplxParams, from_dna
 from pig.body.skeleton import LEFT_HAND, RIGHT_HAND
 from pig.data.images import decode_image
 from pig.data.raw import CaptureError, RawCamera
+from pig.names import safe_name
 
 if TYPE_CHECKING:
     from pig.body.model import BodyModel
@@ -50,6 +51,8 @@ def locate_smc(root: str | Path, sequence: str | None = None) -> tuple[Path, Pat
     download's `root/main/<seq>.smc` + `root/annotations/`, or `root` itself naming the main file.
     """
     root = Path(root)
+    if sequence is not None:  # it names the files sought below
+        safe_name(sequence, "sequence name", f"DNA-Rendering sequence under {root}", CaptureError)
     if root.suffix == ".smc" and root.is_file():
         main = root
     else:

@@ -34,6 +34,7 @@ from pig.data.projection_check import Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
+from pig.names import safe_name
 from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 from pig.stages._io import atomic_path, write_json
@@ -176,6 +177,10 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
     `output` may replace only an earlier preprocessed capture unless `overwrite`; it never overlaps the raw
     capture, the body model or the other `inputs`."""
     start = time.perf_counter()
+    # Camera ids name the folders written below (whichever reader gave them): each one path component.
+    for camera in raw.cameras:
+        safe_name(camera, "camera id", str(raw.source), CaptureError)
+    safe_name(subject, "subject", split_source)
     output = claim_dir(output, "preprocess", (raw.source, body_model, *inputs), overwrite)
     background = _check_config(cfg)
     encoders = _encoders(cfg)
