@@ -74,11 +74,10 @@ def test_preprocess_refuses_an_escaping_calibration_camera_id_and_touches_nothin
 
     status = run_cli(main, ["--input", str(raw), "--output", str(out), "--preset", "test", "--no-progress"])
 
-    message = capsys.readouterr().err
-    assert status == 1
-    assert f"{raw / 'calibration.json'}: camera id {name!r} contains a path separator" in message
     assert _snapshot(tmp_path) == before
     assert sorted(p.name for p in (tmp_path / "data").iterdir()) == ["subject", "victim"]
+    assert status == 1
+    assert f"{raw / 'calibration.json'}: camera id {name!r} contains a path separator" in capsys.readouterr().err
     with pytest.raises(CaptureError, match="camera id"):
         read_calibration(raw / "calibration.json")
 
@@ -89,8 +88,8 @@ def test_preprocess_refuses_an_unsafe_subject_before_writing(tmp_path, capsys):
     raw = write_thuman4(tmp_path / "subject", cameras=3, frames=3, width=48, height=40)
     status = run_cli(main, ["--input", str(raw), "--output", str(tmp_path / "out"), "--preset", "test",
                             "--no-progress", "--subject", "../x"])
-    assert status == 1 and "subject '../x' contains a path separator" in capsys.readouterr().err
     assert not (tmp_path / "out").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["subject"]
+    assert status == 1 and "subject '../x' contains a path separator" in capsys.readouterr().err
 
 
 def _with_camera_renamed(capture: Path, copy: Path, old: str, new: str) -> Path:
@@ -121,9 +120,9 @@ def test_render_refuses_an_escaping_camera_id_of_the_capture_and_overwrites_noth
     status = run_cli(main, ["--checkpoint", str(avatar), "--capture", str(copy), "--split", "novel_view",
                             "--output", str(out), "--preset", "test"])
 
+    assert _snapshot(tmp_path / "work") == before and not out.exists()
     assert status == 1
     assert f"{copy / 'cameras.json'}: camera id {name!r} contains a path separator" in capsys.readouterr().err
-    assert _snapshot(tmp_path / "work") == before and not out.exists()
     with pytest.raises(CaptureError, match="camera id"):
         Capture.load(copy)
 
@@ -135,16 +134,17 @@ def test_tables_refuses_an_escaping_dataset_name_and_keeps_the_users_file(tmp_pa
     summary = tmp_path / "results" / "synthetic" / "s0" / "pig" / "metrics" / "novel_view_lod0.json"
     summary.parent.mkdir(parents=True)
     summary.write_text(json.dumps({"split": "novel_view", "lod": 0, "splats": 100, "psnr": 20.0, "ssim": 0.9,
-                                   "lpips": 0.1, "fid": None, "images": 1, "model_mb": 1.0, "fps": 1.0}))
+                                   "lpips": 0.1, "lpips_net": "alex", "fid": None, "images": 1, "model_mb": 1.0,
+                                   "fps": 1.0, "device": "cpu", "psnr_blank": 10.0, "ssim_blank": 0.5}))
     (tmp_path / "escaped.csv").write_text("the user's own table\n")
     before = _snapshot(tmp_path)
 
     status = run_cli(main, ["--dataset", "../../escaped", "--summaries", str(summary), "--variants", "pig",
                             "--output", str(tmp_path / "results" / "tables")])
 
+    assert _snapshot(tmp_path) == before and not (tmp_path / "results" / "tables").exists()
     assert status == 1
     assert "--dataset: dataset name '../../escaped' contains a path separator" in capsys.readouterr().err
-    assert _snapshot(tmp_path) == before and not (tmp_path / "results" / "tables").exists()
 
 
 def test_dna_sequence_name_is_one_path_component(tmp_path):

@@ -38,7 +38,7 @@ from pig.names import safe_name
 from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 from pig.stages._io import atomic_path, write_json
-from pig.stages._outputs import claim_dir, resumable_dir
+from pig.stages._outputs import OutputError, claim_dir, marked_stage, resumable_dir
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
 HELD_OUT = ("novel_view", "novel_pose")
@@ -182,6 +182,8 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         safe_name(camera, "camera id", str(raw.source), CaptureError)
     safe_name(subject, "subject", split_source)
     output = claim_dir(output, "preprocess", (raw.source, body_model, *inputs), overwrite)
+    if not overwrite:
+        _check_same_capture(output, raw, subject)
     background = _check_config(cfg)
     encoders = _encoders(cfg)
     body_model = Path(body_model)
@@ -290,6 +292,22 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         }
         write_json(work / "report.json", report)  # a non-finite IoU or radius is written as null
     return report
+
+
+def _check_same_capture(output: Path, raw: RawCapture, subject: str) -> None:
+    """Refuse to replace an earlier preprocessed capture of another raw capture or subject (its report.json says
+    which); a rerun on the same raw capture may replace it. Writes nothing."""
+    if marked_stage(output) != "preprocess":
+        return
+    try:
+        report = json.loads((output / "report.json").read_text())
+        held, held_subject = Path(report["source"]), report["subject"]
+    except (OSError, ValueError, KeyError, TypeError):  # unfinished or older: nothing says whose capture it is
+        return
+    if held.resolve() != Path(raw.source).resolve() or held_subject != subject:
+        raise OutputError(f"{output}: holds the preprocessed capture of {held} (subject {held_subject!r}), not of "
+                          f"{raw.source} (subject {subject!r}); choose another --output, or pass --overwrite to "
+                          "replace it")
 
 
 def _folder_bytes(folder: Path) -> int:
