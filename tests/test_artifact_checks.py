@@ -272,6 +272,20 @@ def test_a_full_disk_is_named_for_torch_save_which_reports_no_errno(small_captur
     assert not [p for p in out.iterdir() if p.name.endswith(".pt")]
 
 
+def test_a_full_disk_is_named_for_a_render_png_that_opencv_could_not_write(tmp_path, monkeypatch):
+    """Sweep two, c34: OpenCV's imwrite reports a full disk only by returning False."""
+    import numpy as np
+
+    monkeypatch.setattr(_io.cv2, "imwrite", lambda *args, **kwargs: False)
+    _full_disk(monkeypatch)
+    target = tmp_path / "lod0" / "cam00" / "00000000.png"
+    with pytest.raises(NoSpaceError) as err:
+        _io.write_png(target, np.zeros((4, 4, 3)))
+    assert str(err.value).startswith(f"{target}: no space left on the device while writing it ({target}: OpenCV "
+                                     "could not write the PNG)")
+    assert list(target.parent.iterdir()) == []
+
+
 def test_a_writer_error_with_space_left_is_not_blamed_on_the_disk(tmp_path, monkeypatch):
     _full_disk(monkeypatch, free=10 << 30)
     with pytest.raises(RuntimeError, match="encoder broke") as err:

@@ -150,3 +150,24 @@ def test_tables_refuses_an_escaping_dataset_name_and_keeps_the_users_file(tmp_pa
 def test_dna_sequence_name_is_one_path_component(tmp_path):
     with pytest.raises(CaptureError, match=r"sequence name '\.\./seq'"):
         locate_smc(tmp_path, "../seq")
+
+
+def test_workflow_refuses_an_escaping_subject_of_the_dataset_yaml(tmp_path):
+    """A subject `../../escaped` in a dataset YAML would put results/{dataset}/{subject}/ outside results/."""
+    import yaml
+
+    import test_workflow as wf
+
+    work = tmp_path / "work dir"
+    wf._workflow_config(work, "thuman4")
+    dataset = work / wf.DATASET
+    data = yaml.safe_load(dataset.read_text())
+    data["subjects"] = ["../../escaped"]
+    dataset.write_text(yaml.safe_dump(data))
+    wf._fake_thuman4_subject(work / "raw data" / "../../escaped")  # the raw data is there: only the name is wrong
+    (work / "raw data" / "SMPLX NEUTRAL.npz").write_bytes(b"model")
+
+    code, output = wf.snakemake_exit(work, wf.TARGET, "--dry-run")
+
+    assert code != 0
+    assert f"{wf.DATASET}: `subjects`: subject '../../escaped' contains a path separator" in output

@@ -75,15 +75,15 @@ class NoSpaceError(OSError):
         self.errno = errno.ENOSPC
 
 
-# Below this many free bytes a writer's RuntimeError is taken for a full disk: torch.save reports one as
-# "unexpected pos ...", OpenEXR as "Failed to write pixel data", neither with an errno.
+# Below this many free bytes a writer's error without an errno is taken for a full disk: torch.save reports one
+# as a RuntimeError "unexpected pos ...", OpenEXR as "Failed to write pixel data", OpenCV's imwrite as False.
 LOW_SPACE_BYTES = 1 << 20
 
 
 def _no_space(err: BaseException, folder: Path) -> bool:
-    if isinstance(err, OSError):
+    if isinstance(err, OSError) and err.errno is not None:
         return err.errno in (errno.ENOSPC, errno.EDQUOT)
-    if not isinstance(err, RuntimeError):
+    if not isinstance(err, (OSError, RuntimeError)):
         return False
     try:
         stat = os.statvfs(folder)
