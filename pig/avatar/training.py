@@ -312,8 +312,9 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     callers_threads = torch.get_num_threads()
     try:
         with output_lock(Path(output_dir), "fit"):  # two fits into one folder: the second is refused, naming the first
-            return _fit(Path(capture_dir), Path(output_dir), preset_name, variant, resolve_device(str(device), "--device"),
-                        on_iteration, phase or (lambda name: nullcontext()), overwrite, threads)
+            return _fit(Path(capture_dir), Path(output_dir), preset_name, variant,
+                        resolve_device(str(device), "--device"), on_iteration, phase or (lambda name: nullcontext()),
+                        overwrite, threads)
     finally:
         torch.set_num_threads(callers_threads)
 
