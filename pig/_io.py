@@ -6,6 +6,7 @@ hidden temporaries a kill leaves carry the writer's process id, so the next run 
 """
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -67,15 +68,46 @@ def remove_orphans(path: str | Path) -> list[Path]:
     return removed
 
 
+class NoSpaceError(OSError):
+    """A write failed because the file system is full; the message names the file."""
+
+    def __init__(self, message: str):
+        super().__init__(message)
+        self.errno = errno.ENOSPC
+
+
+# Below this many free bytes a writer's error without an errno is taken for a full disk: torch.save reports one
+# as a RuntimeError "unexpected pos ...", OpenEXR as "Failed to write pixel data", OpenCV's imwrite as False.
+LOW_SPACE_BYTES = 1 << 20
+
+
+def _no_space(err: BaseException, folder: Path) -> bool:
+    if isinstance(err, OSError) and err.errno is not None:
+        return err.errno in (errno.ENOSPC, errno.EDQUOT)
+    if not isinstance(err, (OSError, RuntimeError)):
+        return False
+    try:
+        stat = os.statvfs(folder)
+    except OSError:
+        return False
+    return stat.f_bavail * stat.f_frsize < LOW_SPACE_BYTES
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """A hidden temporary sibling of `path` to write to; renamed onto `path` when the block succeeds, removed
-    when it raises. For writers that take a file name (torch.save, cv2.imwrite, OpenEXR, h5py)."""
+    when it raises. For writers that take a file name (torch.save, cv2.imwrite, OpenEXR, h5py). A write that
+    fails on a full file system raises NoSpaceError naming `path`, whichever writer it was."""
     path = Path(path)
     tmp = _temporary(path)
     try:
         yield tmp
         os.replace(tmp, path)
+    except Exception as err:
+        if _no_space(err, tmp.parent):
+            raise NoSpaceError(f"{path}: no space left on the device while writing it ({err}); free "
+                               "some space or choose an output folder on another disk, then rerun") from err
+        raise
     finally:
         tmp.unlink(missing_ok=True)
 

@@ -417,3 +417,20 @@ def test_evaluate_with_true_meshes_needs_the_splat_track(rendered, tmp_path):
     (copy / "lod0" / SPLATS).unlink()
     with pytest.raises(FileNotFoundError, match=f"{copy / 'lod0' / SPLATS} not found.*rerun render"):
         evaluate_split(capture, copy, "novel_view", tmp_path / "metrics", cfg, [0])
+
+
+def test_renders_record_the_fingerprint_and_folder_of_their_capture(rendered):
+    """The render stage's capture record (evaluate refuses renders of another capture: test_artifact_checks.py)."""
+    import hashlib
+
+    from pig.data.capture import Capture
+    from pig.data.capture_record import RECORD
+
+    out, _ = rendered
+    capture, renders = out["synthetic"]
+    record = json.loads((renders / RECORD).read_text())
+    assert record == {"capture": str(capture.resolve()), "fingerprint": Capture.load(capture).fingerprint()}
+    # The fingerprint's image part, recomputed here from the file listing (names and sizes).
+    listing = "".join(f"{kind}/{cam.name}/{f.name} {f.stat().st_size}\n" for kind in ("images", "masks")
+                      for cam in sorted((capture / kind).iterdir()) for f in sorted(cam.iterdir()))
+    assert record["fingerprint"]["images"] == hashlib.sha256(listing.encode()).hexdigest()

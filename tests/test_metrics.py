@@ -14,6 +14,8 @@ import yaml
 from skimage.metrics import structural_similarity
 
 from pig.body.params import SmplxParams
+from pig.data.capture import Capture
+from pig.data.capture_record import RECORD, capture_record
 from pig.metrics.fid import FeatureStatistics, InceptionFeatures, fid_from_statistics, frechet_distance
 from pig.metrics.lpips import LPIPS, WeightsMissing, backbone_features
 from pig.metrics.psnr import psnr
@@ -283,6 +285,8 @@ def _tiny_capture(root, rng, width: int = 40, height: int = 32, frames: int = 1,
         write_png(renders / "lod0" / "cam00" / f"{frame:08d}.png", rng.random((height, width, 3)))
     write_json(renders / "lod0" / "timing.json", {"splats": 100, "model_mb": 1.0, "seconds_per_frame": 1 / fps,
                                                   "fps": fps, "device": "cpu"})
+    (capture / "body_model.npz").write_bytes(b"")  # hashed into the capture's fingerprint, never read here
+    write_json(renders / RECORD, capture_record(Capture.load(capture)))  # as the render stage records its capture
     return capture, renders
 
 

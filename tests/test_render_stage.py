@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pig.avatar.training import fit
 from pig.render.api import RasterizerConfig
 from pig.data.images import read_png
 from pig.stages.evaluate import EvaluateConfig, evaluate_split
@@ -43,6 +44,8 @@ def test_render_and_evaluate_a_split_with_two_image_sizes(fitted, tmp_path):
     assert len(split["cameras"]) >= 2
     small = split["cameras"][0]
     _halve_camera(capture, small)
+    # Fitted on the halved capture: render refuses an avatar of another capture (the original's cameras).
+    checkpoint = fit(capture, tmp_path / "pig", str(checkpoint.parent.parent / "preset.yaml"))
     cfg = EvaluateConfig(timing_frames=1)
     renders = tmp_path / "renders" / "novel_pose"
     render_split(checkpoint, capture, "novel_pose", renders, cfg, RasterizerConfig(backend="cpu"))

@@ -16,6 +16,8 @@ import numpy as np
 import torch
 
 from pig._io import atomic_path
+from pig.data.capture_record import require_same_capture
+from pig.data.splits import brief
 
 from .averaging import WeightAverage
 from .build import build_avatar
@@ -74,6 +76,22 @@ def _weights(model) -> dict:
 
 
 def _load_weights(model, weights: dict, path: Path) -> None:
+    """Load `weights` into `model`; refuses tensors of another dtype than the model's (load_state_dict would cast
+    them silently) and NaN or infinite values (a diverged fit, which would render as blank images)."""
+    if not isinstance(weights, dict) or not all(isinstance(t, torch.Tensor) for t in weights.values()):
+        raise CheckpointError(f"{path}: the checkpoint's weights are not a mapping of name -> tensor")
+    expected = model.state_dict()
+    for key, tensor in weights.items():
+        if key in expected and tensor.dtype != expected[key].dtype:
+            raise CheckpointError(f"{path}: weight {key!r} is {tensor.dtype}, the avatar's spec builds it as "
+                                  f"{expected[key].dtype}; the file was altered or written by another program")
+    broken = {key: int((~torch.isfinite(t)).sum()) for key, t in weights.items() if t.is_floating_point()}
+    broken = {key: count for key, count in broken.items() if count}
+    if broken:
+        shown = ", ".join(f"{key} ({count})" for key, count in list(broken.items())[:3]) + (
+            ", ..." if len(broken) > 3 else "")
+        raise CheckpointError(f"{path}: {sum(broken.values())} NaN or infinite weights ({shown}): the fit diverged; "
+                              "it is not an avatar to render or score; refit with lower learning rates (fit.lr_*)")
     try:
         missing, unexpected = model.load_state_dict(weights, strict=False)
     except RuntimeError as err:  # shape mismatches, reported over several lines
@@ -143,15 +161,30 @@ def _first_line(err: Exception) -> str:
     return text[0].split(". ")[0] if text else type(err).__name__
 
 
-def load_avatar(path: str | Path, device: str | torch.device = "cpu"):
-    """The fitted `AvatarModel` of a checkpoint (avatar.pt), on `device`, in eval mode."""
+def load_avatar(path: str | Path, device: str | torch.device = "cpu", capture=None):
+    """The fitted `AvatarModel` of a checkpoint (avatar.pt), on `device`, in eval mode. With a loaded `Capture`,
+    refuses an avatar fitted on another capture (by fingerprint) or whose training frame ids are not that
+    capture's train split, before building the model."""
     state = _read(Path(path), AVATAR_KEYS)
+    if capture is not None:
+        _require_capture(Path(path), state["spec"], capture)
     try:
         model = build_avatar(_loaded_spec(state["spec"]))
     except (AttributeError, KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{path}: avatar spec unusable ({type(err).__name__}: {err})") from err
     _load_weights(model, state["model"], path)
     return model.to(device).eval()
+
+
+def _require_capture(path: Path, spec: dict, capture) -> None:
+    fingerprint = spec.get("capture") if isinstance(spec, dict) else None
+    require_same_capture(path, fingerprint if isinstance(fingerprint, dict) else {}, spec.get("capture_dir"), capture)
+    frames = spec.get("frame_ids")
+    train = [int(f) for f in capture.split["train"]["frames"]]
+    if frames != train:
+        shown = brief(frames) if isinstance(frames, list) else repr(frames)
+        raise CheckpointError(f"{path}: the avatar's training frame ids {shown} are not the train frames "
+                              f"{brief(train)} of {capture.root}, the capture it was fitted on; the file was altered")
 
 
 def loss_terms(path: str | Path) -> dict[str, dict]:

@@ -49,7 +49,7 @@ from pig.metrics.psnr import psnr
 from pig.progress import LOG_INTERVAL_S
 from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
 from pig._io import write_figure, write_text
-from pig._outputs import claim_files
+from pig._outputs import claim_files, output_lock
 
 # lpips_term: the LPIPS term's state on every row (pig.avatar.losses.LPIPS_STATES; "on" is the paper's loss).
 # train_s: wall time less this run's held-out evaluations (what the time budget counts; the x axis of the
@@ -59,6 +59,17 @@ from pig._outputs import claim_files
 LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr",
                "heldout_psnr_iterate", "data_wait_ms"]
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
+class FitDiverged(ValueError):
+    """The fit's loss or weights became NaN or infinite: there is no avatar to write."""
+
+
+def _diverged(what: str, iteration: int, state_path: Path) -> FitDiverged:
+    kept = (f"{state_path} keeps the last finite weights; delete it to start over" if state_path.exists()
+            else "no checkpoint was written")
+    return FitDiverged(f"fit diverged at iteration {iteration}: {what}; stopped without writing avatar.pt ({kept}); "
+                       "lower the learning rates (fit.lr_*, precond) or check the capture")
+
+
 def lr_factor(progress: float, iteration: int, warmup: int, final: float) -> float:
     """Multiplier of every base learning rate: warm-up over `warmup` iterations, then exp decay to `final` at
     `progress` 1 (progress in [0, 1] is the fraction of the run done)."""
@@ -251,8 +262,10 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     """
     callers_threads = torch.get_num_threads()
     try:
-        return _fit(Path(capture_dir), Path(output_dir), preset_name, variant, resolve_device(str(device), "--device"),
-                    on_iteration, phase or (lambda name: nullcontext()), overwrite, threads, progress_s, tensorboard)
+        with output_lock(Path(output_dir), "fit"):  # two fits into one folder: the second is refused, naming the first
+            return _fit(Path(capture_dir), Path(output_dir), preset_name, variant,
+                        resolve_device(str(device), "--device"), on_iteration, phase or (lambda name: nullcontext()),
+                        overwrite, threads, progress_s, tensorboard)
     finally:
         torch.set_num_threads(callers_threads)
 
@@ -292,7 +305,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         "avatar": asdict(avatar_cfg), "field": asdict(field_cfg), "precond": asdict(precond_cfg),
         "body_model_npz": body_model_npz(Path(capture_dir) / "body_model.npz"),
         "params": asdict(params), "frame_ids": [int(f) for f in train["frames"]], "variant": variant,
-        "capture": capture.fingerprint(),
+        "capture": capture.fingerprint(), "capture_dir": str(capture_dir.resolve()),  # the folder: for messages
     }
     settings = {"fit": asdict(fit_cfg), "rasterizer": asdict(raster)}  # the other sections a resume must match
     torch.manual_seed(fit_cfg.seed)
@@ -332,6 +345,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     loss = LossTerms(fit_cfg, background, lpips, fit_cfg.compile)
 
     def checkpoint(path: Path, iteration: int, wall: float) -> None:
+        broken = [name for name, t in model.state_dict().items() if t.is_floating_point() and not t.isfinite().all()]
+        if broken:  # never written: the last checkpoint stays the last finite one
+            raise _diverged(f"NaN or infinite weights in {broken[:3]}", iteration, state_path)
         save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings, loss_terms, average)
         _write_log(log_path, rows)
 
@@ -421,6 +437,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             save = iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes
             if evaluate or save or iteration % fit_cfg.log_every == 0:
                 row = window_row(iteration, batch.lod)
+                if not math.isfinite(row["loss"]):  # read back anyway: a diverged fit stops here, not at the end
+                    raise _diverged(f"the training loss is {row['loss']}", iteration, state_path)
                 if evaluate:
                     t0 = time.perf_counter()
                     row.update(evaluate_held_out())

@@ -26,6 +26,7 @@ from pig.data.raw import CaptureError
 from pig.data.rectify import composite
 from pig.data.splits import SPLITS
 from pig.inputs import require_regular_file
+from pig.names import safe_name
 from pig.progress import progress_bar
 
 CAMERA_KEYS = ("K", "R", "T", "width", "height")
@@ -84,8 +85,9 @@ class Capture:
         if not root.is_dir():
             raise CaptureError(f"preprocessed capture {root} not found (run the preprocess stage: "
                                "python -m pig.stages.preprocess --input RAW --output DIR)")
-        cameras = {name: _camera(name, entry, root / "cameras.json")
-                   for name, entry in _json(root / "cameras.json").items()}
+        # Each camera id names a folder read here and written by the render stage: checked before any is used.
+        cameras = {safe_name(name, "camera id", str(root / "cameras.json"), CaptureError):
+                   _camera(name, entry, root / "cameras.json") for name, entry in _json(root / "cameras.json").items()}
         try:
             params, frames = SmplxParams.load(root / "smplx.npz")
         except ParamsError as err:

@@ -38,6 +38,7 @@ from pig.data.images import MAX_PIXELS, decode_image
 from pig.data.raw import CaptureError, RawCamera
 from pig.data.rectify import check_matte
 from pig.inputs import require_regular_file
+from pig.names import safe_name
 
 if TYPE_CHECKING:
     from pig.body.model import BodyModel
@@ -61,6 +62,8 @@ def locate_smc(root: str | Path, sequence: str | None = None) -> tuple[Path, Pat
     download's `root/main/<seq>.smc` + `root/annotations/`, or `root` itself naming the main file.
     """
     root = Path(root)
+    if sequence is not None:  # it names the files sought below
+        safe_name(sequence, "sequence name", f"DNA-Rendering sequence under {root}", CaptureError)
     if root.suffix == ".smc" and root.is_file():
         main = root
     else:

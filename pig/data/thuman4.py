@@ -18,6 +18,7 @@ from pig.data.images import read_image
 from pig.data.raw import CaptureError, RawCamera
 from pig.data.rectify import check_matte
 from pig.inputs import require_regular_file
+from pig.names import safe_name
 
 CALIBRATION = "calibration.json"
 PARAMS = "smpl_params.npz"
@@ -181,7 +182,10 @@ def read_calibration(path: Path) -> dict[str, RawCamera]:
         raise CaptureError(f"{path}: not valid JSON: {err}") from None
     if not isinstance(data, dict) or not data:
         raise CaptureError(f"{path}: expected a non-empty mapping camera id -> {{K, R, T, imgSize, distCoeff}}")
-    return {str(name): _camera(str(name), entry, path) for name, entry in data.items()}
+    # Checked before any camera is used: each id names the folders images/<id>/ and masks/<id>/ read here and
+    # written by the preprocess stage.
+    names = [safe_name(name, "camera id", str(path), CaptureError) for name in data]
+    return {name: _camera(name, data[name], path) for name in names}
 
 
 def _numbers(value) -> np.ndarray | None:

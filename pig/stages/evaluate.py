@@ -22,6 +22,7 @@ import pandas as pd
 import torch
 
 from pig.config import Bounds, load_preset, load_section, resolve_device
+from pig.data.capture_record import read_capture_record, require_same_capture
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
 from pig.data.images import read_png
 from pig.data.raw import CaptureError
@@ -156,6 +157,8 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
                 (capture_dir, split_dir), overwrite)
     # Each view is read once: a cache would only hold decoded images that are never asked for again.
     capture = Capture.load(capture_dir, cache_mb=0)
+    record = read_capture_record(split_dir, "render")  # renders of another capture are not scored against this one
+    require_same_capture(split_dir, record["fingerprint"], record["capture"], capture)
     if split not in capture.split:
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
     views, listed = len(capture.views(split)), len(capture.split[split]["cameras"]) * len(capture.split[split]["frames"])

@@ -34,10 +34,11 @@ from pig.data.projection_check import Tolerance, View, check_projection
 from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import MASK_THRESHOLD, Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
+from pig.names import safe_name
 from pig.progress import progress_bar
 from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
 from pig._io import atomic_path, write_json
-from pig._outputs import claim_dir, resumable_dir
+from pig._outputs import OutputError, claim_dir, marked_stage, resumable_dir
 
 RAW_BODY_MODEL = "body_model.npz"  # the synthetic capture ships its body model beside the data
 HELD_OUT = ("novel_view", "novel_pose")
@@ -177,7 +178,13 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
     `output` may replace only an earlier preprocessed capture unless `overwrite`; it never overlaps the raw
     capture, the body model or the other `inputs`."""
     start = time.perf_counter()
+    # Camera ids name the folders written below (whichever reader gave them): each one path component.
+    for camera in raw.cameras:
+        safe_name(camera, "camera id", str(raw.source), CaptureError)
+    safe_name(subject, "subject", split_source)
     output = claim_dir(output, "preprocess", (raw.source, body_model, *inputs), overwrite)
+    if not overwrite:
+        _check_same_capture(output, raw, subject)
     background = _check_config(cfg)
     encoders = _encoders(cfg)
     body_model = Path(body_model)
@@ -298,6 +305,22 @@ def _require_person(raw: RawCapture, checked: dict[str, list[int]], masks: dict[
         raise CaptureError(f"{raw.source}: the masks are empty (all black, no pixel above {MASK_THRESHOLD}) in every "
                            f"frame checked for {len(empty)} of {len(checked)} cameras ({listed}); masks mark the person "
                            "with 255: check the mask files of these cameras")
+
+
+def _check_same_capture(output: Path, raw: RawCapture, subject: str) -> None:
+    """Refuse to replace an earlier preprocessed capture of another raw capture or subject (its report.json says
+    which); a rerun on the same raw capture may replace it. Writes nothing."""
+    if marked_stage(output) != "preprocess":
+        return
+    try:
+        report = json.loads((output / "report.json").read_text())
+        held, held_subject = Path(report["source"]), report["subject"]
+    except (OSError, ValueError, KeyError, TypeError):  # unfinished or older: nothing says whose capture it is
+        return
+    if held.resolve() != Path(raw.source).resolve() or held_subject != subject:
+        raise OutputError(f"{output}: holds the preprocessed capture of {held} (subject {held_subject!r}), not of "
+                          f"{raw.source} (subject {subject!r}); choose another --output, or pass --overwrite to "
+                          "replace it")
 
 
 def _folder_bytes(folder: Path) -> int:

@@ -20,6 +20,7 @@ import torch
 
 from pig.avatar.driver import AvatarDriver
 from pig.config import load_preset, load_section, resolve_device
+from pig.data.capture_record import RECORD, capture_record
 from pig.data.exr import write_exr
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
 from pig.field.precondition import bake_preconditioning
@@ -143,7 +144,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
     cameras, frames = capture.split[split]["cameras"], [int(f) for f in capture.split[split]["frames"]]
     device = resolve_device(cfg.device)
-    model = load_avatar(checkpoint, device).eval()
+    model = load_avatar(checkpoint, device, capture).eval()  # refuses an avatar of another capture
     note = fit_note(loss_terms(checkpoint)["lpips"])  # passed on to the evaluate stage's summaries and the tables
     bake_preconditioning(model)
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
@@ -151,6 +152,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     levels = range(model.num_levels)
     with build_dir(output, "render") as tmp, \
             progress_bar(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
+        write_json(tmp / RECORD, capture_record(capture))  # the capture these renders are for (evaluate checks it)
         for lod in levels:
             level_dir = tmp / f"lod{lod}"
             centres, opacities = [], []

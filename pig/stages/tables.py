@@ -27,6 +27,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from pig.names import safe_name  # noqa: E402
 from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser  # noqa: E402
 from pig._io import read_record, write_figure, write_text  # noqa: E402
 from pig._outputs import claim_files  # noqa: E402
@@ -46,7 +47,7 @@ def read_summaries(paths: list[Path]) -> pd.DataFrame:
     """One row per summary file results/{dataset}/{subject}/{variant}/metrics/{split}_lod{l}.json.
 
     Either every summary has all REGION_KEYS or none has any: a table never mixes scored and unscored rows."""
-    rows, with_regions, without_regions = [], None, None
+    rows, with_regions, without_regions, seen = [], None, None, {}
     for path in paths:
         path = Path(path)
         if path.parent.name != "metrics" or len(path.parts) < 4:
@@ -66,6 +67,11 @@ def read_summaries(paths: list[Path]) -> pd.DataFrame:
             with_regions = with_regions or path
         else:
             without_regions = without_regions or path
+        key = (path.parts[-4], path.parts[-3], summary["split"], summary["lod"])
+        if key in seen:  # one run found in two result trees: averaging them would score neither
+            raise ValueError(f"{path}: a second summary of subject {key[0]!r}, variant {key[1]!r}, split {key[2]!r}, "
+                             f"LOD {key[3]} (the first is {seen[key]}); pass one summary per run")
+        seen[key] = path
         rows.append({"subject": path.parts[-4], "variant": path.parts[-3], **summary})
     if not rows:
         raise ValueError("no evaluate summaries given")
@@ -286,6 +292,7 @@ def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], var
     """The main tables: write the main and LOD tables and the training plot of `variants` to `output`, after every
     input has been read and checked; files of the same names are replaced only in a tables output folder, or
     with `overwrite`."""
+    safe_name(dataset, "dataset name", "--dataset")  # it names the files written into `output`
     table = read_summaries(summaries)
     main = main_table(table, variants)
     lod = lod_table(table, variants)
@@ -309,6 +316,7 @@ def make_table(table: str, dataset: str, summaries: list[Path], variants: list[s
                sigmas: dict[str, float] | None = None, overwrite: bool = False) -> None:
     """One of the other tables (`ablation`, `noise`, `regions`) of `variants`, as `{dataset}_{table}.csv/.md`
     in `output`, after every input has been read and checked; `sigmas` {variant: sigma_body} for `noise`."""
+    safe_name(dataset, "dataset name", "--dataset")  # it names the files written into `output`
     summary = read_summaries(summaries)
     if table == "ablation":
         frame, title = main_table(summary, variants), f"{dataset}: structural ablation (finest LOD)"

@@ -19,6 +19,7 @@ from pig.config import load_preset, load_section, load_yaml
 from pig.data.formats import capture_format
 from pig.data.raw import CaptureError
 from pig.data.synthetic.config import SyntheticConfig
+from pig.names import safe_name
 from pig.resources import check_rule_names, rule_resources
 
 SPLITS = ["novel_view", "novel_pose"]
@@ -78,6 +79,7 @@ def dataset_config(name):
     """The dataset YAML named `name` in the config's `datasets`."""
     if name not in config["datasets"]:
         raise ValueError(f"unknown dataset {name!r}: configured datasets are {sorted(config['datasets'])}")
+    safe_name(name, "dataset name", "config `datasets`")  # it names results/{dataset}/ and the tables
     return load_yaml(config["datasets"][name])  # the stages' reader: ids such as 0102 stay strings
 
 
@@ -91,6 +93,8 @@ def subjects(name, table="main"):
         raise ValueError(
             f"{config['datasets'][name]}: `{key}` must be a non-empty list of subject names, found {names!r}"
         )
+    for subject in names:  # each names results/{dataset}/{subject}/ and the raw folder under `root`
+        safe_name(subject, "subject", f"{config['datasets'][name]}: `{key}`")
     return names
 
 
@@ -247,6 +251,8 @@ def table_runs(dataset, table):
             f"{target}: region metrics need the ground-truth meshes that only generated datasets have "
             f"(`generated: true`, e.g. synthetic); {config['datasets'][dataset]} is a real capture"
         )
+    for variant in config["variants"]:  # each names results/{dataset}/{subject}/{variant}/
+        safe_name(variant, "variant", "config `variants`")
     names = table_variants(preset(), config["variants"], table)
     if not names:
         raise ValueError(
