@@ -70,7 +70,7 @@ class Viewer:
         self.jpeg_quality = jpeg_quality
         self._lock = threading.Lock()  # one frame at a time through the driver (its CUDA graph outputs are shared)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.server.gui.configure_theme(control_layout="floating", show_share_button=False)
+        self.server.gui.configure_theme(control_layout="floating", dark_mode=True, show_share_button=False)
         self.server.scene.set_up_direction(tuple(float(v) for v in timeline.up))
         self.frames_sent = 0  # frames the server path has handed to viser, over all clients
         self.updates = 0  # splat updates the browser path has handed to viser

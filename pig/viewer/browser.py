@@ -33,6 +33,11 @@ def find_chromium() -> str | None:
     return None
 
 
+def _decode_png(data: str) -> np.ndarray:
+    image = cv2.imdecode(np.frombuffer(base64.b64decode(data), np.uint8), cv2.IMREAD_COLOR)
+    return image[..., ::-1].copy()
+
+
 class HeadlessChromium:
     """One headless browser with one page of `width` x `height` CSS pixels (device scale 1). Use as a context
     manager, or call `close()`."""
@@ -102,16 +107,15 @@ class HeadlessChromium:
             time.sleep(every_s)
         raise TimeoutError(f"page: {expression[:80]} still false after {timeout_s} s")
 
-    def press(self, key: str, code: int) -> None:
-        """Press and release a key (DOM `key` name and Windows virtual key code) in the focused element."""
-        for kind in ("keyDown", "keyUp"):
-            self.call("Input.dispatchKeyEvent", type=kind, key=key, code=key, windowsVirtualKeyCode=code)
+    def click(self, x: float, y: float) -> None:
+        """Press and release the left mouse button at page coordinates (x, y) (CSS pixels)."""
+        self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y)
+        for kind in ("mousePressed", "mouseReleased"):
+            self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
 
     def screenshot(self) -> np.ndarray:
         """(H, W, 3) uint8 RGB of the page as shown."""
-        data = self.call("Page.captureScreenshot", format="png")["data"]
-        image = cv2.imdecode(np.frombuffer(base64.b64decode(data), np.uint8), cv2.IMREAD_COLOR)
-        return image[..., ::-1].copy()
+        return _decode_png(self.call("Page.captureScreenshot", format="png")["data"])
 
     def close(self) -> None:
         socket = getattr(self, "_socket", None)
