@@ -121,6 +121,9 @@ def main(argv: list[str] | None = None) -> int:
                 latencies.append(browser.wait_for("window.__pig.latency", timeout_s=60, every_s=0.02))
                 time.sleep(0.3)
             if args.screenshot is not None:
+                # The notice that WebGL runs in software (SwiftShader) is headless Chromium's, not a user's.
+                browser.evaluate("document.head.insertAdjacentHTML('beforeend', "
+                                 "'<style>.mantine-Notifications-root { display: none !important; }</style>')")
                 if args.capture is not None:
                     name = viewer.capture.split["train"]["cameras"][0]
                     viewer.camera.value = f"{name} (train)"
