@@ -90,6 +90,72 @@ def test_viser_view_inverts_camera_pose(rng):
     np.testing.assert_allclose(project(view, K_view), project(viewmat, K), atol=1e-8)
 
 
+@pytest.fixture(scope="module")
+def trained_looking_avatar(tmp_path_factory):
+    """A small avatar on the stand-in body (3 timesteps, 3 levels) with a refiner and decoders far from zero."""
+    from pig.body.params import SmplxParams
+    from pig.body.standin import write_standin
+    from pig.field.precondition import bake_preconditioning
+    from avatar_fixture import small_avatar
+
+    path = tmp_path_factory.mktemp("standin") / "body_model.npz"
+    write_standin(path)
+    rng = np.random.default_rng(0)
+    params = SmplxParams(rng.normal(scale=0.2, size=(3, 55, 3)), np.zeros(10), np.zeros((3, 10)),
+                         rng.normal(scale=0.1, size=(3, 3)))
+    model = small_avatar(path.read_bytes(), params, num_anchors=400, levels=3, sh_degree=1, hidden_layers=2,
+                         hidden_width=16)
+    with torch.no_grad():
+        for layer in [*model.decoder.modules(), *model.refiner.modules()]:
+            if isinstance(layer, torch.nn.Linear):
+                layer.weight.normal_(std=0.5)
+    bake_preconditioning(model)
+    return model.eval()
+
+
+def test_training_timeline_shows_each_timestep_as_the_model_renders_it(trained_looking_avatar):
+    """Timeline entry t without a motion: the model's own splats of training timestep t (its refined pose and
+    translation, its decoded outputs), at each level; from the stacked decoder outputs when they fit the
+    driver's budget, from its per-timestep path when not."""
+    from pig.avatar.driver import AvatarDriver
+    from pig.viewer.timeline import Timeline
+
+    model = trained_looking_avatar
+    stacked = Timeline(AvatarDriver(model, frame_graph=True))
+    per_timestep = Timeline(AvatarDriver(model, frame_graph=True, decoded_budget_bytes=1000))
+    assert stacked.length == model.num_timesteps and stacked.motion is None
+    for lod, t in ((0, 0), (1, 2), (2, 1)):
+        assert stacked.timestep(t) == t
+        reference = model.gaussians(t, lod)
+        for timeline in (stacked, per_timestep):
+            for ours, theirs in zip(timeline.gaussians(lod, t), reference):
+                torch.testing.assert_close(ours, theirs)
+    with pytest.raises(ValueError, match="timeline index must lie in 0..2"):
+        stacked.gaussians(0, 3)
+
+
+def test_motion_timeline_is_the_aligned_motion(trained_looking_avatar):
+    """With a motion, the timeline holds its frames as `animate` places them (align_motion onto the capture's
+    up axis, ground and centre) and shows each through the driver's pose path."""
+    from pig.avatar.driver import AvatarDriver
+    from pig.body.motion import DEMO_MOTION, align_motion, capture_frame, read_motion
+    from pig.viewer.timeline import Timeline
+
+    model = trained_looking_avatar
+    driver = AvatarDriver(model, frame_graph=True)
+    timeline = Timeline(driver, DEMO_MOTION)
+    motion = read_motion(DEMO_MOTION, hands_mean=model.body_model.hands_mean.numpy())
+    up, ground, centre = capture_frame(model)
+    aligned = align_motion(motion, model.body_model, driver.refined()[0], up, ground, centre)
+    assert timeline.length == motion.num_frames and timeline.fps == motion.fps and timeline.timestep(0) is None
+    plain = AvatarDriver(model)
+    for index in (0, motion.num_frames - 1):
+        np.testing.assert_allclose(timeline.motion.full_pose[index], aligned.full_pose[index], rtol=0, atol=0)
+        for ours, theirs in zip(timeline.gaussians(2, index), plain.gaussians(2, aligned.full_pose[index],
+                                                                              aligned.transl[index])):
+            torch.testing.assert_close(ours, theirs)
+
+
 def _footprint(means: np.ndarray, scales: np.ndarray, viewmat: np.ndarray, focal: float, width: int, height: int,
                sigmas: float) -> np.ndarray:
     """Pixels within `sigmas` times each splat's largest standard deviation of its centre's projection through a
