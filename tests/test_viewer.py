@@ -275,3 +275,14 @@ def test_viewer_in_headless_chromium(tiny_fit, tmp_path):
             assert now > 0.85 and now > before, f"the page shows frame 1 at IoU {now:.2f}, frame 0 at {before:.2f}"
     finally:
         viewer.close()
+
+
+@pytest.mark.skipif(not VISER, reason="viser is not installed (pip install -e '.[viewer]')")
+def test_view_stage_names_a_missing_checkpoint(tmp_path, capsys):
+    from pig.stages._cli import run_cli
+    from pig.stages.view import main
+
+    missing = tmp_path / "avatar.pt"
+    assert run_cli(main, ["--checkpoint", str(missing), "--port", str(free_port())]) == 1
+    error = capsys.readouterr().err
+    assert error.startswith("view: error: ") and str(missing) in error and "not found" in error

@@ -1,5 +1,6 @@
-"""View stage: a fitted avatar in the browser (viser), with an orbiting camera, a timeline, an LOD switch and the
-capture's cameras; it writes nothing.
+"""View stage: a fitted avatar in the browser (viser): orbit, timeline, LOD switch, the capture's cameras.
+
+It serves a page on --host:--port and writes nothing; the capture's cameras show its ground truth beside the render.
 
 Without a GPU the splats are drawn in the browser; on CUDA the server renders each view (pig.viewer.app). Needs
 the `viewer` extra (pip install -e '.[viewer]'). Example:
