@@ -3,7 +3,9 @@
 Each sample clicks the timeline's slider at the next frame and times, in the page's own clock, from the slider's
 pointerdown event to the first animation frame whose canvas pixels differ from those before it (a 160 x 120
 downsample, >= 20 pixels changed by > 30 levels summed over RGB). Beside it, the server's share: the frame's
-splats from the driver (`Timeline.gaussians`) and their conversion for viser (`browser_splats`), timed apart.
+splats from the driver (`Timeline.gaussians`) and their conversion for viser (`browser_splats`), timed apart, and
+the CPU time that the browser's processes and the server's threads spend per pose change: on a machine shared with
+other jobs the wall time waits for the cores, the CPU time does not.
 
     python benchmarks/viewer_latency.py                                  # an unfitted cpu-demo avatar, 16k splats
     python benchmarks/viewer_latency.py --checkpoint avatar.pt --capture capture/ --screenshot docs/viewer_cpu.png
@@ -61,6 +63,28 @@ window.__pig = (() => {
 """
 
 
+def cpu_seconds(root: int) -> float:
+    """User + system CPU time (s) of process `root` and its descendants (Linux /proc), for the browser's work."""
+    import os
+
+    ticks, parents = os.sysconf("SC_CLK_TCK"), {}
+    stats = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                fields = open(f"/proc/{entry}/stat").read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            parents[int(entry)] = int(fields[1])
+            stats[int(entry)] = (int(fields[11]) + int(fields[12])) / ticks
+    tree, grown = {root}, True
+    while grown:
+        more = {pid for pid, parent in parents.items() if parent in tree} - tree
+        tree |= more
+        grown = bool(more)
+    return sum(stats.get(pid, 0.0) for pid in tree)
+
+
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -115,11 +139,14 @@ def main(argv: list[str] | None = None) -> int:
                 "(r => [r.left, r.top, r.right, r.bottom])(document.querySelector('.mantine-Slider-track')"
                 ".getBoundingClientRect())")
             steps = viewer.frame.max
+            browser_cpu, server_cpu = cpu_seconds(browser.pid), time.process_time()
             for k in range(args.samples):
                 target = (k + 1) % (steps + 1)
                 browser.click(left + (right - left) * target / steps, (top + bottom) / 2)
                 latencies.append(browser.wait_for("window.__pig.latency", timeout_s=60, every_s=0.02))
                 time.sleep(0.3)
+            browser_cpu = (cpu_seconds(browser.pid) - browser_cpu) / args.samples * 1e3
+            server_cpu = (time.process_time() - server_cpu) / args.samples * 1e3
             if args.screenshot is not None:
                 # The notice that WebGL runs in software (SwiftShader) is headless Chromium's, not a user's.
                 browser.evaluate("document.head.insertAdjacentHTML('beforeend', "
@@ -141,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, values in (("slider event -> changed pixels (page)", latencies), ("driver frame (server)", server_ms),
                          ("conversion for viser (server)", convert_ms)):
         print(f"| {name} | {statistics.median(values):.0f} | {min(values):.0f} | {max(values):.0f} |")
+    print(f"CPU time per pose change (all threads, 0.3 s idle after each included): browser {browser_cpu:.0f} ms, "
+          f"server {server_cpu:.0f} ms")
     return 0
 
 

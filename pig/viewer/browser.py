@@ -76,6 +76,11 @@ class HeadlessChromium:
             time.sleep(0.05)
         raise TimeoutError(f"Chromium did not open its DevTools port within {timeout_s} s")
 
+    @property
+    def pid(self) -> int:
+        """Process id of the browser (its renderer and GPU processes are its children)."""
+        return self._process.pid
+
     def call(self, method: str, **params) -> dict:
         """Send one DevTools command and return its result (events that arrive meanwhile are dropped)."""
         self._next_id += 1
