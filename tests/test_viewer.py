@@ -156,6 +156,58 @@ def test_motion_timeline_is_the_aligned_motion(trained_looking_avatar):
             torch.testing.assert_close(ours, theirs)
 
 
+@pytest.mark.skipif(not VISER, reason="viser is not installed (pip install -e '.[viewer]')")
+def test_server_path_streams_the_renderers_image_of_the_clients_camera(trained_looking_avatar):
+    """The server path on the CPU: a scripted client reports a camera (as a browser does) and receives a JPEG that
+    equals the project's renderer at that camera, whose world-to-camera matrix is built here by look-at."""
+    import cv2
+
+    from pig.avatar.animation import look_at
+    from pig.avatar.driver import AvatarDriver
+    from pig.render.api import render_gaussians
+    from pig.viewer.app import Viewer
+    from pig.viewer.client import ViserClient, camera_message
+    from pig.viewer.timeline import Timeline
+
+    model = trained_looking_avatar
+    driver = AvatarDriver(model, frame_graph=True)
+    timeline = Timeline(driver)
+    viewer = Viewer(driver, timeline, path="server", port=free_port(), jpeg_quality=100)
+    width, height, fov = 96, 72, math.radians(40.0)
+    centre, extent = timeline.bounds()
+    up = np.asarray(timeline.up, dtype=np.float64)
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    eye = centre + 1.6 * extent * side / np.linalg.norm(side)
+
+    def reference(eye) -> np.ndarray:
+        focal = 0.5 * height / math.tan(fov / 2)
+        K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float32)
+        viewmat = torch.as_tensor(look_at(eye, centre, up), dtype=torch.float32)
+        splats = [t.float() for t in timeline.gaussians(viewer.level, 0)]
+        out = render_gaussians(*splats, viewmat[None], K[None], width, height, torch.zeros(3))
+        return out.color[0].clamp(0, 1).numpy()
+
+    try:
+        client = ViserClient(f"ws://127.0.0.1:{viewer.server.get_port()}")
+        try:
+            client.send(camera_message(eye, centre, up, fov, width, height))
+            expected, frames = reference(eye), []
+            # A frame is made per camera report (and one may predate ours): the last one is of our camera.
+            while (data := client.next_frame(20.0 if not frames else 2.0)) is not None:
+                frames.append(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1] / 255.0)
+        finally:
+            client.close()
+    finally:
+        viewer.close()
+    assert frames, "no frame reached the client"
+    frame = frames[-1]
+    assert frame.shape == (height, width, 3)
+    assert (expected.max(-1) > 0.1).mean() > 0.05, "the avatar barely shows: the comparison would say little"
+    assert np.abs(frame - expected).mean() < 2 / 255, f"mean difference {np.abs(frame - expected).mean() * 255:.1f} / 255"
+    moved = reference(eye + 0.05 * extent * up)
+    assert np.abs(frame - moved).mean() > 4 * np.abs(frame - expected).mean(), "the check cannot tell cameras apart"
+
+
 def _footprint(means: np.ndarray, scales: np.ndarray, viewmat: np.ndarray, focal: float, width: int, height: int,
                sigmas: float) -> np.ndarray:
     """Pixels within `sigmas` times each splat's largest standard deviation of its centre's projection through a

@@ -220,6 +220,8 @@ class Viewer:
                                    torch.as_tensor(K, dtype=torch.float32, device=device)[None], width, height,
                                    torch.zeros(3, device=device))
             rgb = (out.color[0].clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+        if client.client_id not in self._renderers:  # the page closed while the frame was made
+            return
         client.scene.set_background_image(rgb, format="jpeg", jpeg_quality=self.jpeg_quality)
         self.frames_sent += 1
 

@@ -5,7 +5,7 @@
 # unfitted `paper` avatar of 100k splats while the demo motion plays and the camera orbits (target >= 30), the
 # server's parts per frame, and the last frame received (frame_gpu.jpg). benchmarks/viewer_stream.py says how.
 # Expected GPU wall time: ~1.5 min (kit install 60-90 s on a fresh machine, none on a warm one; avatar build and
-# the four levels' compile + graph capture ~30-60 s; 3 s warm-up and 10 s of counting).
+# the finest level's compile + graph capture ~20-40 s; 3 s warm-up, 10 s of counting, 30 frames of parts).
 set -u
 [ -d /tmp/site/gsplat ] && [ -d /tmp/site/viser ] && [ -d /tmp/text ] || bash .gpu/device-setup.sh >/dev/null
 export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
