@@ -267,4 +267,6 @@ def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path 
     capture = Capture.load(capture_dir) if capture_dir is not None else None
     if path is None:
         path = "server" if torch.device(device).type == "cuda" else "browser"
+    if device.type == "cuda":
+        timeline.gaussians(model.num_levels - 1, 0)  # compile and capture the frame before a page waits for it
     return Viewer(driver, timeline, capture, path, host, port)
