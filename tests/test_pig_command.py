@@ -16,7 +16,7 @@ from pig._cli import device_name, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 PRESENT = [stage for stage in STAGES if (REPO / "pig" / "stages" / f"{stage}.py").is_file()]
-COMPUTING = ["fit", "render", "evaluate", "animate", "export"]  # the stages that run torch on a device
+COMPUTING = ["fit", "render", "evaluate", "animate", "export", "view"]  # the stages that run torch on a device
 
 
 def _run(*argv):

@@ -1,0 +1,53 @@
+"""View stage: a fitted avatar in the browser (viser): orbit, timeline, LOD switch, the capture's cameras.
+
+It serves a page on --host:--port and writes nothing; the capture's cameras show its ground truth beside the render.
+
+Without a GPU the splats are drawn in the browser; on CUDA the server renders each view (pig.viewer.app). Needs
+the `viewer` extra (pip install -e '.[viewer]'). Example:
+
+    pig view --checkpoint results/synthetic/s0/pig/avatar.pt --capture results/synthetic/s0/capture
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from pig._cli import add_common_arguments, add_device_argument, run_cli, stage_parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = stage_parser("view", __doc__, "pig view --checkpoint results/synthetic/subject00/pig/avatar.pt --capture "
+                                           "results/synthetic/subject00/capture --motion pig/data/motions/demo.npz")
+    parser.add_argument("--checkpoint", type=Path, required=True, help="avatar.pt of the fit stage")
+    parser.add_argument("--motion", type=Path, default=None,
+                        help="motion npz for the timeline (AMASS, THuman4 smpl_params.npz or DNA-style fullpose), "
+                             "brought into the capture's frame as the animate stage does; default: the training poses")
+    parser.add_argument("--capture", type=Path, default=None,
+                        help="preprocessed capture of the fit: its cameras to jump to and its ground truth images")
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (0.0.0.0 for other machines)")
+    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default: 8080)")
+    add_device_argument(parser)
+    parser.add_argument("--draw", choices=["browser", "server"], default=None,
+                        help="where splats are drawn (default: server on CUDA, browser otherwise)")
+    add_common_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise OSError("the viewer needs viser: pip install -e '.[viewer]'") from None
+    from pig.viewer.app import open_viewer
+
+    viewer = open_viewer(args.checkpoint, args.motion, args.capture, args.host, args.port, args.device, args.draw)
+    print(f"viewer on {viewer.url} (Ctrl+C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(run_cli(main))
