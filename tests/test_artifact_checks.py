@@ -20,7 +20,7 @@ from pig.config import load_preset
 from pig.data.capture import Capture
 from pig.data.capture_record import RECORD, capture_record
 from pig.data.raw import CaptureError
-from pig.stages import _io
+from pig import _io
 from pig._cli import run_cli
 from pig._io import NoSpaceError, write_json
 from pig._outputs import output_lock
