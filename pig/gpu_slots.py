@@ -121,7 +121,11 @@ def main(argv: list[str] | None = None) -> int:
               f"has {len(devices)} ({source}); not run on the CPU. Use a preset whose `resources:` give this rule "
               "no GPU (e.g. --config preset=cpu-demo) or a machine with GPUs.", file=sys.stderr, flush=True)
         return 2
-    held = acquire(devices, args.gpus, lock_dir(), args.poll)
+    try:
+        held = acquire(devices, args.gpus, lock_dir(), args.poll)
+    except KeyboardInterrupt:
+        print(f"{_now()} {args.rule}: interrupted while waiting for a GPU slot", file=sys.stderr)
+        return 130
     for _, fd in held:
         os.set_inheritable(fd, True)  # the command holds the locks from here on
     visible = ",".join(device for device, _ in held)
