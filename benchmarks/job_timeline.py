@@ -28,7 +28,7 @@ def parse(text: str) -> dict[int, dict]:
         if found := re.match(r"^(?:local)?rule (\w+):$", line):
             current = {"rule": found.group(1), "start": stamp, "wildcards": "", "log": None, "end": None,
                        "status": "running"}
-        elif current is not None and (found := re.match(r"^\s+(jobid|wildcards|log): (.*)$", line)):
+        elif "rule" in (current or {}) and (found := re.match(r"^\s+(jobid|wildcards|log): (.*)$", line)):
             key, value = found.groups()
             if key == "jobid":
                 jobs[int(value)] = current

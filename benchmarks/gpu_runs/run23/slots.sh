@@ -10,12 +10,13 @@
 # outlives the call) and waits up to 540 s; stage w waits up to 540 s more (call it only when a did not print
 # "all done"). Each stage copies to $OUT: Snakemake's output, the job table (benchmarks/job_timeline.py: start and
 # end of every job, the device its log names), the plan (plan_tables), the tables' Markdown.
-# Off the GPU machine, for a trial on the CPU: BASE=test SYNTHETIC='{"frames": 4}' PIG_GPU_DEVICES=0,1 OUT=/tmp/o.
+# Off the GPU machine, a trial on the CPU with two stand-in GPUs: BASE=test SYNTHETIC='{"frames": 4}'
+# VARIANTS='variants=[pig,no_offsets]' PIG_GPU_DEVICES=0,1 OUT=/tmp/o W=/tmp/w bash benchmarks/gpu_runs/run23/slots.sh a
 set -u
 REPO=$PWD W=${W:-/tmp/w23} R=$OUT/slots
 BASE=${BASE:-paper}
 SYNTHETIC=${SYNTHETIC:-'{"cameras": 12, "frames": 10, "width": 665, "height": 575, "supersample": 1}'}
-VARIANTS='variants=[pig,no_precond,fixed_anchors,no_offsets,single_mlp]'
+VARIANTS=${VARIANTS:-'variants=[pig,no_precond,fixed_anchors,no_offsets,single_mlp]'}
 if [ "$BASE" = paper ]; then
   # The kit's install took 60-90 s of a 600 s call (run22); a warm machine has it from the call before.
   [ -d /tmp/site/gsplat ] && [ -d /tmp/text ] || bash .gpu/device-setup.sh >/dev/null
@@ -54,6 +55,8 @@ preset.pop("_path")
 preset["synthetic"].update(json.loads(synthetic))
 preset["fit"].update(time_budget_s=30.0, weight_lpips=0.0, compile=False, compile_posing=False)
 preset["precond"].update(cg_compile=False)
+for rule in ("fit_avatar", "render_split", "evaluate"):  # as in `paper` (for a trial on another base)
+    preset["resources"].setdefault(rule, {})["gpu"] = 1
 with open(path, "w") as out:
     yaml.safe_dump(preset, out, sort_keys=False)
 PY
