@@ -244,3 +244,11 @@ def test_cluster_job_steps_take_no_slot(gpu_workflow, monkeypatch):
     text = (gpu_workflow / RENDERS[0]).read_text()
     assert "render: error:" in text and "GPU slot" not in text, output[-3000:]
     assert "gives rules render_split a GPU" not in output
+
+
+def test_a_gpu_for_a_rule_without_a_slot_is_refused(gpu_workflow):
+    """make_tables runs no launcher: a GPU there would be counted by Snakemake and used by no slot."""
+    edit_yaml(gpu_workflow / PRESET, lambda p: p["resources"].update(make_tables={"gpu": 1}))
+    code, output = snakemake_exit(gpu_workflow, TARGET, "--dry-run")
+    assert code == 1
+    assert f"{PRESET}: section 'resources' gives rule make_tables a GPU, which it does not use" in output
