@@ -89,7 +89,9 @@ def check_preset_resources():
 # `--resources gpu=K` sets it. Elsewhere (Slurm: sbatch --gpus gives each job its device) the launcher only runs
 # the command. An environment variable, not the command's text or params, so that moving between a local and a
 # cluster run reruns nothing.
-LOCAL_RUN = workflow.resource_settings.nodes is None and workflow.exec_mode != ExecMode.REMOTE
+def local_run():
+    """Whether this Snakemake process runs its jobs on this machine (Snakemake's own test, as above)."""
+    return workflow.resource_settings.nodes is None and workflow.exec_mode != ExecMode.REMOTE
 
 
 @cache
@@ -102,7 +104,7 @@ def register_gpu_slots():
     """On a local run: marks the jobs' environment for the slot launcher and, with GPUs, makes the `gpu` resource
     their count unless the command line or a profile set it. Without GPUs it stays unset, so that a dry run lists
     the GPU jobs; a real run refuses them (refuse_gpu_jobs)."""
-    if not LOCAL_RUN:
+    if not local_run():
         return
     os.environ[LOCAL_SLOTS_ENV] = "1"
     devices, _ = gpu_devices()
@@ -121,7 +123,7 @@ def refuse_gpu_jobs():
     """Before a local run starts any job: refuses the run at once when jobs that the preset gives a GPU are to run
     on a machine without one, naming the preset, instead of running them on the CPU or failing hours later."""
     devices, source = gpu_devices()
-    if not LOCAL_RUN or devices or workflow.touch:
+    if not local_run() or devices or workflow.touch:
         return
     rules = sorted({job.rule.name for job in workflow.dag.needrun_jobs() if job.resources.get("gpu", 0) > 0})
     if rules:
