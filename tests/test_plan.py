@@ -79,6 +79,12 @@ def test_plan_counts_iterations_lpips_budget_and_checkpoints(tmp_path):
     assert f"on 2 GPU(s), one fit each at a time: about {makespan_s([225, 8, 5, 1], 2) / 3600:.2f} h wall" in text
     with pytest.raises(ValueError, match="positive"):
         plan_fits(preset, runs, results, ms_per_iteration=0.0)
+    (results / "s2" / "pig" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match=r"s2/pig/checkpoint.pt: not a readable fit checkpoint"):
+        plan_fits(preset, runs, results)
+    torch.save({"iteration": 3}, results / "s2" / "pig" / "checkpoint.pt")
+    with pytest.raises(ValueError, match=r"s2/pig/checkpoint.pt: expected a fit checkpoint with `iteration` and `wall_s`"):
+        plan_fits(preset, runs, results)
 
 
 @pytest.fixture(scope="module")

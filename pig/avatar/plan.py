@@ -7,6 +7,7 @@ A fit with avatar.pt is done; one with a checkpoint.pt (a killed run) resumes at
 from __future__ import annotations
 
 import heapq
+import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +37,10 @@ class PlannedFit:
 
 def checkpoint_progress(path: Path) -> tuple[int, float]:
     """(iteration, training seconds) stored in a fit's checkpoint.pt, read without loading its tensors."""
-    state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except (RuntimeError, pickle.UnpicklingError) as err:
+        raise ValueError(f"{path}: not a readable fit checkpoint ({err})") from None
     try:
         return int(state["iteration"]), float(state["wall_s"])
     except (KeyError, TypeError, ValueError):
