@@ -12,6 +12,7 @@ include: "workflow/rules/common.smk"
 
 check_renamed_config_keys()
 validate(config, "config/schema/config.schema.yaml")
+register_gpu_slots()
 
 
 report: "workflow/report/workflow.rst"
@@ -21,11 +22,16 @@ include: "workflow/rules/generate.smk"
 include: "workflow/rules/preprocess.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/tables.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/animate.smk"
 
 
 check_preset_resources()
+
+
+onstart:
+    refuse_gpu_jobs()
 
 
 rule all:

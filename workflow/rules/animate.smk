@@ -24,6 +24,7 @@ rule animate:
         # Not used by the command: a change reruns the rule (params trigger).
         settings=preset_settings("rasterizer"),
     shell:
+        "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule animate -- "
         "python -m pig animate --checkpoint {input.checkpoint:q} --output {output:q} {params.motion} "
         "--preset {params.preset:q} {params.options} > {log:q} 2>&1"
 

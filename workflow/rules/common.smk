@@ -12,6 +12,7 @@ from importlib.resources import files
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
+from snakemake_interface_executor_plugins.settings import ExecMode
 
 from pig.avatar.config import AvatarConfig
 from pig.avatar.variants import table_variants, variant_overrides
@@ -19,6 +20,7 @@ from pig.config import load_preset, load_section, load_yaml
 from pig.data.formats import capture_format
 from pig.data.raw import CaptureError
 from pig.data.synthetic.config import SyntheticConfig
+from pig.gpu_slots import LOCAL_SLOTS_ENV, machine_devices
 from pig.names import safe_name
 from pig.resources import check_rule_names, rule_resources
 
@@ -71,8 +73,67 @@ def conda_env(name):
 
 
 def check_preset_resources():
-    """Once all rules exist, refuses entries of the preset's `resources:` section that no rule reads (a typo)."""
+    """Once all rules exist, refuses entries of the preset's `resources:` section that no rule reads (a typo), and
+    a GPU for a rule whose command takes no local GPU slot (it would run on a device that no slot reserves)."""
     check_rule_names(preset(), PRESET_RESOURCE_RULES)
+    for name in sorted(PRESET_RESOURCE_RULES):
+        if rule_resources(preset(), name).gpu and "pig.gpu_slots" not in (workflow.get_rule(name).shellcmd or ""):
+            raise WorkflowError(
+                f"{preset()['_path']}: section 'resources' gives rule {name} a GPU, which it does not use; "
+                "expected gpu: 0 for it"
+            )
+
+
+# Local GPU slots (pig.gpu_slots). The command of every rule that may use a GPU starts with the slot launcher. On a
+# local run (Snakemake's own test: no --jobs for a cluster executor, and not a job step on a cluster node) this
+# process marks its jobs' environment, and there the launcher gives each job that asks for a GPU a free device of
+# its own (CUDA_VISIBLE_DEVICES) or makes it wait; the machine's GPU count becomes the `gpu` resource unless
+# `--resources gpu=K` sets it. Elsewhere (Slurm: sbatch --gpus gives each job its device) the launcher only runs
+# the command. An environment variable, not the command's text or params, so that moving between a local and a
+# cluster run reruns nothing.
+def local_run():
+    """Whether this Snakemake process runs its jobs on this machine (Snakemake's own test, as above)."""
+    return workflow.resource_settings.nodes is None and workflow.exec_mode != ExecMode.REMOTE
+
+
+@cache
+def gpu_devices():
+    """(device ids, where they came from) of this machine, read once per Snakemake run (nvidia-smi, no torch)."""
+    return machine_devices()
+
+
+def register_gpu_slots():
+    """On a local run: marks the jobs' environment for the slot launcher and, with GPUs, makes the `gpu` resource
+    their count unless the command line or a profile set it. Without GPUs it stays unset, so that a dry run lists
+    the GPU jobs; a real run refuses them (refuse_gpu_jobs)."""
+    if not local_run():
+        return
+    os.environ[LOCAL_SLOTS_ENV] = "1"
+    devices, _ = gpu_devices()
+    if devices and "gpu" not in workflow.global_resources:
+        workflow.global_resources["gpu"] = len(devices)
+
+
+def gpu_slot_count():
+    """GPU jobs that may run at once: the `gpu` resource where set, else the machine's GPUs (0 without)."""
+    if "gpu" in workflow.global_resources:
+        return workflow.global_resources["gpu"].value
+    return len(gpu_devices()[0])
+
+
+def refuse_gpu_jobs():
+    """Before a local run starts any job: refuses the run at once when jobs that the preset gives a GPU are to run
+    on a machine without one, naming the preset, instead of running them on the CPU or failing hours later."""
+    devices, source = gpu_devices()
+    if not local_run() or devices or workflow.touch:
+        return
+    rules = sorted({job.rule.name for job in workflow.dag.needrun_jobs() if job.resources.get("gpu", 0) > 0})
+    if rules:
+        raise WorkflowError(
+            f"the compute preset {config['preset']!r} ({preset()['_path']}) gives rules {', '.join(rules)} a GPU and "
+            f"this machine has none ({source}); nothing was run. Use a preset without GPU jobs "
+            "(e.g. --config preset=cpu-demo) or run on a machine with GPUs"
+        )
 
 
 def dataset_config(name):
@@ -242,6 +303,37 @@ def table_target(dataset, table):
     return f"results/tables/{dataset}.csv" if table == "main" else f"results/tables/{dataset}_{table}.csv"
 
 
+def variant_names(table):
+    """The variants named for a table: its entry of the config's `table_variants`, else `variants`."""
+    return config["table_variants"].get(table, config["variants"])
+
+
+def dataset_tables(dataset):
+    """The tables that apply to a dataset: main (with LOD), ablation and noise where it names their subjects and
+    the config names variants of theirs, regions where it has ground truth (generated)."""
+    tables = ["main"]
+    for table in ("ablation", "noise"):
+        if subjects(dataset, table) and table_variants(preset(), variant_names(table), table):
+            tables.append(table)
+    if dataset_config(dataset).get("generated", False):
+        tables.append("regions")
+    return tables
+
+
+def all_table_targets():
+    """Every table file of the config's dataset (dataset_tables), the LOD table beside the main one."""
+    dataset = config["dataset"]
+    paths = [table_target(dataset, table) for table in dataset_tables(dataset)]
+    return [*paths, f"results/tables/{dataset}_lod.csv"]
+
+
+def planned_runs():
+    """`--run SUBJECT VARIANT` for each fit of the config's dataset's tables, each once (quoted for the shell)."""
+    dataset = config["dataset"]
+    runs = dict.fromkeys(run for table in dataset_tables(dataset) for run in table_runs(dataset, table))
+    return " ".join(f"--run {shlex.quote(subject)} {shlex.quote(variant)}" for subject, variant in runs)
+
+
 def table_runs(dataset, table):
     """(subject, variant) pairs of a table: its variants among the config's on the dataset's `subjects` (main and
     regions tables) or `<table>_subjects` (ablation, noise). Refused at once, naming the target, when it has none."""
@@ -251,13 +343,13 @@ def table_runs(dataset, table):
             f"{target}: region metrics need the ground-truth meshes that only generated datasets have "
             f"(`generated: true`, e.g. synthetic); {config['datasets'][dataset]} is a real capture"
         )
-    for variant in config["variants"]:  # each names results/{dataset}/{subject}/{variant}/
+    for variant in variant_names(table):  # each names results/{dataset}/{subject}/{variant}/
         safe_name(variant, "variant", "config `variants`")
-    names = table_variants(preset(), config["variants"], table)
+    names = table_variants(preset(), variant_names(table), table)
     if not names:
         raise ValueError(
-            f"{target}: none of the variants {config['variants']} belongs to the {table} table; "
-            "name them with --config 'variants=[pig,...]'"
+            f"{target}: none of the variants {variant_names(table)} belongs to the {table} table; "
+            "name them with --config 'variants=[pig,...]' (or the table's entry of `table_variants`)"
         )
     people = subjects(dataset, "main" if table in ("main", "regions") else table)
     if not people:

@@ -28,6 +28,7 @@ rule render_split:
         # Not used by the command: a change reruns the rule (params trigger).
         settings=preset_settings("evaluate", "rasterizer"),
     shell:
+        "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule render_split -- "
         "python -m pig render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
         "--split {wildcards.split:q} --output {output:q} --preset {params.preset:q} > {log:q} 2>&1"
 
@@ -59,6 +60,7 @@ rule evaluate:
         # Not used by the command: a change reruns the rule (params trigger).
         settings=preset_settings("evaluate"),
     shell:
+        "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule evaluate -- "
         "python -m pig evaluate --capture {params.capture:q} --renders {input.renders:q} "
         "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} "
         "--preset {params.preset:q} > {log:q} 2>&1"
@@ -102,7 +104,7 @@ rule make_tables:
     resources:
         **preset_resources("make_tables"),
     params:
-        variants=config["variants"],
+        variants=variant_names("main"),
         output=lambda wildcards, output: str(Path(output.table).parent),
     shell:
         "python -m pig tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
@@ -135,7 +137,7 @@ rule make_table:
     resources:
         **preset_resources("make_table"),
     params:
-        variants=lambda wildcards: table_variants(preset(), config["variants"], wildcards.table),
+        variants=lambda wildcards: table_variants(preset(), variant_names(wildcards.table), wildcards.table),
         output=lambda wildcards, output: str(Path(output.table).parent),
         preset=config["preset"],
     shell:

@@ -29,5 +29,6 @@ rule fit_avatar:
             "avatar", "fit", "field", "precond", "rasterizer", variant=wildcards.variant
         ),
     shell:
+        "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule fit_avatar -- "
         "python -m pig fit --capture {params.capture:q} --output {params.output:q} "
         "--preset {params.preset:q} --variant {wildcards.variant:q} --threads {threads} 2>&1 | tee {log:q}"
