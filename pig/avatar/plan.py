@@ -13,14 +13,15 @@ from pathlib import Path
 
 import torch
 
-from pig.avatar.training import FitConfig
+from pig.avatar.fit_config import FitConfig
 from pig.avatar.variants import variant_overrides
 from pig.config import load_section
 
-# Measured on an H100 with the `paper` preset's speed levers (benchmarks/NOTES.md, "Fit": 62.1 ms/it in run20;
-# ~490 ms/it with the VGG LPIPS term, run10).
+# Measured on an H100 with the `paper` preset's speed levers (benchmarks/NOTES.md, "Fit"): 62.1 ms/it in run20
+# (benchmarks/gpu_runs/run20); the `mmlphuman` LPIPS term adds 22.5 ms (78.2 against 55.7 ms/it in one process,
+# benchmarks/gpu_runs/run23/lpips/lpips.txt).
 MS_PER_ITERATION = 62.0
-MS_PER_ITERATION_LPIPS = 490.0
+MS_PER_ITERATION_LPIPS = 85.0
 
 
 @dataclass

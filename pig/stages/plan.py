@@ -5,16 +5,16 @@ estimate is pig.avatar.plan's: the preset's iterations times a time per iteratio
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from pig.avatar.plan import MS_PER_ITERATION, MS_PER_ITERATION_LPIPS, format_plan, plan_fits
 from pig.config import load_preset
-from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
+from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pig.stages.plan", description=__doc__.splitlines()[0])
+    parser = stage_parser("plan", __doc__, "pig plan --results results/synthetic --run subject00 pig --run subject00 "
+                                           "no_precond --preset paper --gpus 8")
     parser.add_argument("--results", type=Path, required=True,
                         help="the dataset's results folder: a fit's outputs are in {results}/{subject}/{variant}/")
     parser.add_argument("--run", nargs=2, action="append", required=True, metavar=("SUBJECT", "VARIANT"),
