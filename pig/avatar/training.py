@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import sys
 import time
 from contextlib import AbstractContextManager, contextmanager, nullcontext
@@ -115,6 +116,10 @@ class FitConfig:
     fused_adam: bool = False
     log_every: int = 1
     host_band: bool = False
+    # torch.use_deterministic_algorithms on a GPU fit (a CPU fit always runs so: bit-identical at a fixed thread
+    # count). It covers torch's own kernels only, with a warning for those it has no deterministic form of
+    # (grid_sample's backward); gsplat's backward sums in a nondeterministic order regardless (README).
+    deterministic: bool = False
 
     def __post_init__(self):
         for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),
@@ -299,11 +304,27 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     mean printed at the end.
     """
     callers_threads = torch.get_num_threads()
+    callers_deterministic = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
     try:
         return _fit(Path(capture_dir), Path(output_dir), preset_name, variant, resolve_device(str(device), "--device"),
                     on_iteration, phase or (lambda name: nullcontext()), overwrite, threads)
     finally:
         torch.set_num_threads(callers_threads)
+        torch.use_deterministic_algorithms(callers_deterministic[0], warn_only=callers_deterministic[1])
+
+
+def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
+    """Deterministic torch kernels for a CPU fit always, on a GPU when `requested` (fit.deterministic).
+
+    On the CPU the one kernel that differed between runs (measured: benchmarks/NOTES.md, "Reproducibility") is
+    index_put_ with accumulate, the backward of advanced indexing (the transport's vertex gathers): with more than
+    one thread it adds into shared vertices with atomics, in whatever order the threads reach them; in
+    deterministic mode it adds serially."""
+    if device.type == "cpu":
+        torch.use_deterministic_algorithms(True)
+    elif requested:
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # cuBLAS's deterministic workspace
+        torch.use_deterministic_algorithms(True, warn_only=True)
 
 
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
@@ -323,6 +344,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     raster = load_section(preset, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
+    use_deterministic_kernels(device, fit_cfg.deterministic)
     claim_files(output_dir, OUTPUT_FILES, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"
