@@ -316,7 +316,7 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
 def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
     """Deterministic torch kernels for a CPU fit always, on a GPU when `requested` (fit.deterministic).
 
-    On the CPU the one kernel that differed between runs (measured: benchmarks/NOTES.md, "Reproducibility") is
+    On the CPU the one kernel that differed between runs (measured: benchmarks/NOTES.md, "Fit", "Bit-identical CPU fits") is
     index_put_ with accumulate, the backward of advanced indexing (the transport's vertex gathers): with more than
     one thread it adds into shared vertices with atomics, in whatever order the threads reach them; in
     deterministic mode it adds serially."""
