@@ -32,11 +32,18 @@ def _stored_splats(level_dir) -> SplatTrack:
     return SplatTrack.load(level_dir / SPLATS)
 
 
-@pytest.mark.slow
-def test_render_stage_stores_what_the_rasterizer_renders(tiny_fit, tmp_path):
+@pytest.fixture(scope="module")
+def rendered(tiny_fit, tmp_path_factory):
+    """(capture, avatar.pt, renders of the novel-pose split) of the tiny fit, through the render stage."""
     capture_dir, checkpoint = tiny_fit
-    out = tmp_path / "renders"
+    out = tmp_path_factory.mktemp("render_outputs") / "renders"
     render_split(checkpoint, capture_dir, "novel_pose", out, EvaluateConfig(timing_frames=1), RasterizerConfig(backend="cpu"))
+    return capture_dir, checkpoint, out
+
+
+@pytest.mark.slow
+def test_render_stage_stores_what_the_rasterizer_renders(rendered):
+    capture_dir, checkpoint, out = rendered
     capture = Capture.load(capture_dir)
     split = capture.split["novel_pose"]
     model = load_avatar(checkpoint).eval()
@@ -76,3 +83,34 @@ def test_render_stage_stores_what_the_rasterizer_renders(tiny_fit, tmp_path):
         expected = sum(t.numel() * t.element_size() * (size / n if t.dim() and t.shape[0] == n else 1)
                        for k, t in state.items() if k not in body) / 2**20
         assert timing["splats"] == size and timing["model_mb"] == pytest.approx(expected, rel=0.02)
+
+
+def _psnr_db(x: np.ndarray, y: np.ndarray) -> float:
+    return float(10 * np.log10(1.0 / np.mean((x.astype(np.float64) - y.astype(np.float64)) ** 2)))
+
+
+@pytest.mark.slow
+def test_blank_row_is_a_black_image_scored_against_the_masked_truth(rendered, tmp_path):
+    """The evaluate summary's psnr_blank and the tables' black-image row: the mean over the split's views of the PSNR of
+    an all-black image against the masked ground truth, computed here in float64 numpy."""
+    import pandas as pd
+
+    from pig.stages.evaluate import evaluate_split
+    from pig.stages.tables import BLANK_ROW, make_tables
+
+    capture_dir, checkpoint, out = rendered
+    capture = Capture.load(capture_dir)
+    expected = np.mean([_psnr_db(np.zeros_like(capture.image(c, f)), capture.image(c, f) * capture.mask(c, f)[..., None])
+                        for c, f in capture.views("novel_pose")])
+    variant = tmp_path / "synthetic" / "subject00" / "pig"
+    finest = len(list(out.glob("lod*"))) - 1
+    evaluate_split(capture_dir, out, "novel_pose", variant / "metrics", EvaluateConfig(), levels=[finest])
+    summary = json.loads((variant / "metrics" / f"novel_pose_lod{finest}.json").read_text())
+    assert summary["psnr_blank"] == pytest.approx(expected, abs=1e-3)
+    (variant / "train_log.csv").write_bytes((checkpoint.parent / "train_log.csv").read_bytes())
+    make_tables("synthetic", [variant / "metrics" / f"novel_pose_lod{finest}.json"], [variant / "train_log.csv"], ["pig"],
+                tmp_path / "tables")
+    table = pd.read_csv(tmp_path / "tables" / "synthetic.csv").set_index("variant")
+    assert table.loc[BLANK_ROW, "novel_pose_psnr"] == pytest.approx(expected, abs=1e-3)
+    assert table.loc[BLANK_ROW, "novel_pose_ssim"] == pytest.approx(summary["ssim_blank"], abs=1e-6)
+    assert table.loc[BLANK_ROW, "splats"] == 0
