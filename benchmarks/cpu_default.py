@@ -10,18 +10,25 @@ PSNRs stay exact, their times do not.
 
 Step cost (`--steps N`): per candidate, N iterations of the fit with `--threads` torch threads, seconds per
 iteration over iterations 10..N, the candidates taken in turn `--repeats` times in one process; `--profile-ops K`
-also prints the K operators that took the most CPU time over those iterations.
+also prints the K operators that took the most CPU time over those iterations. `--against DIR` times the
+first candidate under this checkout's code and under DIR's (another checkout, e.g. `git worktree add DIR b8824cc`),
+each round in fresh processes, alternating which goes first, and prints the ratio (a shared machine's load
+drifts, so interleaved rounds are the fair comparison).
 
     python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --seeds 0 1 --jobs 2 \\
         --candidate default: --candidate d8:field.features=8,fit.iterations=1800
     python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --steps 40 --threads 1 \\
         --candidate default: --candidate d8:field.features=8
+    python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --steps 30 --threads 2 \\
+        --repeats 4 --against ../pig-b8824cc
 """
 from __future__ import annotations
 
 import argparse
 import csv
 import json
+import os
+import re
 import shutil
 import statistics
 import subprocess
@@ -112,6 +119,30 @@ def step_cost(capture: Path, candidates: list[tuple[str, dict]], steps: int, thr
         print(f"| {name} | {statistics.median(values):.3f} | {statistics.median(values) / first:.2f} |")
 
 
+def step_cost_against(capture: Path, candidate: str, steps: int, threads: int, repeats: int, other: Path,
+                      workdir: Path, base: str) -> None:
+    """s/it of `candidate` under this checkout and under `other`, one fresh process per round and checkout."""
+    trees = {"this": Path(__file__).resolve().parents[1], "against": other.resolve()}
+    times: dict[str, list[float]] = {name: [] for name in trees}
+    for round_ in range(repeats):
+        for name in (list(trees) if round_ % 2 == 0 else list(trees)[::-1]):
+            tree = trees[name]
+            out = subprocess.run(
+                [sys.executable, str(tree / "benchmarks" / "cpu_default.py"), "--capture", str(capture.resolve()),
+                 "--steps", str(steps), "--threads", str(threads), "--repeats", "1", "--candidate", candidate,
+                 "--preset", base, "--workdir", str(workdir / f"{name}{round_}")],
+                cwd=tree, env={**os.environ, "PYTHONPATH": str(tree)}, check=True, capture_output=True, text=True)
+            value = float(re.findall(r"^\| [^|]+ \| ([0-9.]+) \|", out.stdout, re.M)[-1])
+            times[name].append(value)
+            print(f"round {round_} {name} ({tree}): {value:.3f} s/it", flush=True)
+    this, against = statistics.median(times["this"]), statistics.median(times["against"])
+    ratios = [a / b for a, b in zip(times["this"], times["against"])]
+    print(f"\n| code | s/it ({threads} threads, median of {repeats}) | per round |\n|---|---|---|")
+    for name, values in times.items():
+        print(f"| {name} ({trees[name]}) | {statistics.median(values):.3f} | {' '.join(f'{v:.3f}' for v in values)} |")
+    print(f"\nthis / against: {this / against:.3f} (medians); per round {' '.join(f'{r:.3f}' for r in ratios)}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--capture", type=Path, required=True, help="preprocessed capture (the default run's)")
@@ -124,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=2, help="step-cost mode: rounds over the candidates")
     parser.add_argument("--profile-ops", type=int, default=0,
                         help="step-cost mode: print the N operators of most CPU time over the timed steps")
+    parser.add_argument("--against", type=Path, default=None,
+                        help="step-cost mode: another checkout whose code to time the first candidate under, in turn")
     parser.add_argument("--workdir", type=Path, default=None, help="default: a temporary folder")
     args = parser.parse_args(argv)
     candidates = [parse_variant(c) for c in args.candidate] or [("default", {})]
@@ -132,6 +165,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps:
         if args.steps <= 10:
             parser.error("--steps must exceed 10 (the first 10 iterations are not timed)")
+        if args.against is not None:
+            if not (args.against / "benchmarks" / "cpu_default.py").is_file():
+                parser.error(f"--against {args.against}: no benchmarks/cpu_default.py there (expected a pig checkout)")
+            step_cost_against(args.capture, args.candidate[0] if args.candidate else "default:", args.steps,
+                              args.threads, args.repeats, args.against, workdir, args.preset)
+            return 0
         step_cost(args.capture, candidates, args.steps, args.threads, args.repeats, workdir, args.preset, args.profile_ops)
         return 0
     print("| candidate | seed | fit s | novel view dB | novel pose dB | fit's held-out dB | its iterate's |\n"

@@ -84,6 +84,10 @@ class FitConfig:
     lpips_bf16_head: bool = False
     lpips_compile: bool = False
     lpips_crop_sliced: bool = False
+    # torch.use_deterministic_algorithms on a GPU fit (a CPU fit always runs so: bit-identical at a fixed thread
+    # count). It covers torch's own kernels only, with a warning for those it has no deterministic form of
+    # (grid_sample's backward); gsplat's backward sums in a nondeterministic order regardless (README).
+    deterministic: bool = False
 
     def __post_init__(self):
         for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),

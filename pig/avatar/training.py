@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import sys
 import time
 from contextlib import AbstractContextManager, closing, contextmanager, nullcontext
@@ -261,6 +262,7 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     mean printed at the end.
     """
     callers_threads = torch.get_num_threads()
+    callers_deterministic = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
     try:
         with output_lock(Path(output_dir), "fit"):  # two fits into one folder: the second is refused, naming the first
             return _fit(Path(capture_dir), Path(output_dir), preset_name, variant,
@@ -268,6 +270,21 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
                         overwrite, threads, progress_s, tensorboard)
     finally:
         torch.set_num_threads(callers_threads)
+        torch.use_deterministic_algorithms(callers_deterministic[0], warn_only=callers_deterministic[1])
+
+
+def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
+    """Deterministic torch kernels for a CPU fit always, on a GPU when `requested` (fit.deterministic).
+
+    On the CPU the one kernel that differed between runs (measured: benchmarks/NOTES.md, "Fit", "Bit-identical CPU fits") is
+    index_put_ with accumulate, the backward of advanced indexing (the transport's vertex gathers): with more than
+    one thread it adds into shared vertices with atomics, in whatever order the threads reach them; in
+    deterministic mode it adds serially."""
+    if device.type == "cpu":
+        torch.use_deterministic_algorithms(True)
+    elif requested:
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # cuBLAS's deterministic workspace
+        torch.use_deterministic_algorithms(True, warn_only=True)
 
 
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
@@ -287,6 +304,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     raster = load_section(preset, "rasterizer", RasterizerConfig, overrides.get("rasterizer"))
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
+    use_deterministic_kernels(device, fit_cfg.deterministic)
     claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"

@@ -9,6 +9,9 @@
 set -u
 [ -d /tmp/site/gsplat ] && [ -d /tmp/text ] || bash .gpu/device-setup.sh >/dev/null
 export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
+# cuBLAS reads its workspace setting when the process first uses it, before the first fit that asks for determinism:
+# set for every fit, so that "on" fits get deterministic matmuls and "off" fits differ from them only in torch's switch.
+export CUBLAS_WORKSPACE_CONFIG=:4096:8
 W=/tmp/det D=$OUT/determinism
 mkdir -p $D
 BASE=fit.precision=float32,fit.compile=false,fit.compile_posing=false,fit.batched_render=false,fit.fused_adam=false,fit.log_every=1,fit.host_band=false,precond.cg_check_every=1,precond.cg_compile=false,precond.cg_graphs=false

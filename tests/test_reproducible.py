@@ -1,0 +1,71 @@
+"""A CPU fit at a fixed thread count is bit-identical from run to run, and across a kill and resume (DESIGN.md 7).
+
+The anchors are enough (6000) for the transport's gather backward to exceed torch's parallel grain size (32768
+elements), where two threads used to add into shared vertices in a racing order.
+"""
+import pandas as pd
+import pytest
+import torch
+import yaml
+
+from pig.config import load_preset
+
+LOG_METRICS = ["iteration", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr", "heldout_psnr_iterate"]
+
+
+def _preset(tmp_path) -> str:
+    preset = load_preset("test")
+    preset.pop("_path")
+    preset["avatar"].update(num_anchors=6000)
+    preset["fit"].update(iterations=4, eval_every=4, checkpoint_minutes=0.0, views=2)
+    path = tmp_path / "preset.yaml"
+    path.write_text(yaml.safe_dump(preset))
+    return str(path)
+
+
+def _workflow_threads() -> list[int]:
+    """The fit rule's threads in each preset (what the workflow passes as --threads), and 1 (`--set-threads`)."""
+    counts = {1}
+    for name in ("test", "cpu-demo"):
+        resources = load_preset(name).get("resources", {})
+        counts.add(int(resources.get("fit_avatar", resources.get("default", {})).get("threads", 1)))
+    return sorted(counts, reverse=True)
+
+
+def _assert_same_fit(a_dir, b_dir):
+    a, b = (torch.load(d / "avatar.pt", weights_only=True)["model"] for d in (a_dir, b_dir))
+    assert a.keys() == b.keys()
+    differ = [key for key in a if not torch.equal(a[key], b[key])]
+    assert not differ, f"{len(differ)} of {len(a)} tensors differ: {differ[:5]}"
+    logs = [pd.read_csv(d / "train_log.csv", keep_default_na=False) for d in (a_dir, b_dir)]
+    pd.testing.assert_frame_equal(logs[0][LOG_METRICS], logs[1][LOG_METRICS], check_exact=True)
+
+
+class _Killed(Exception):
+    pass
+
+
+@pytest.mark.slow
+def test_two_cpu_fits_and_a_resumed_one_are_bit_identical(small_capture, tmp_path):
+    from pig.avatar.training import fit
+
+    assert 2 in _workflow_threads()  # the CPU default's fit rule runs two threads: the case that raced
+    preset = _preset(tmp_path)
+    before = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    for threads in _workflow_threads():
+        root = tmp_path / f"threads{threads}"
+        fit(small_capture, root / "a", preset, threads=threads)
+        if threads > 1:
+            fit(small_capture, root / "b", preset, threads=threads)
+            _assert_same_fit(root / "a", root / "b")
+
+        def kill_at_2(iteration):
+            if iteration == 2:
+                raise _Killed
+
+        with pytest.raises(_Killed):
+            fit(small_capture, root / "resumed", preset, threads=threads, on_iteration=kill_at_2)
+        fit(small_capture, root / "resumed", preset, threads=threads)
+        _assert_same_fit(root / "a", root / "resumed")
+    # The caller's settings come back after each fit.
+    assert (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()) == before
