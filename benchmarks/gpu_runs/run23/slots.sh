@@ -68,5 +68,5 @@ PY
      setsid bash -c 'snake all_tables --config preset=run23 "$VARIANTS" > "$W/snakemake.out" 2>&1; echo $? > "$W/rc"' \
        < /dev/null > /dev/null 2>&1 &
      sleep 5; wait_run 420 ;;
-  w) wait_run 540 ;;
+  w) wait_run "${WAIT:-540}" ;;
 esac
