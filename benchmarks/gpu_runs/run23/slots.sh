@@ -7,8 +7,8 @@
 # frames at 665 x 575 without supersampling (a quarter of the paper's pixels: its capture took 120-175 s for 6 frames
 # in run22), fit.time_budget_s 30, fit.weight_lpips 0 (no VGG weights there), the compile levers off (the first
 # compilation takes minutes, more than the budget). Stage a starts Snakemake in its own session (setsid, so it
-# outlives the call) and waits up to 420 s (the kit's set-up may take 90 s of the call's 600); stage w waits up to
-# 540 s more (call it at once, only when a did not print "all done"). Expected: ~2 min set-up and capture, 5 fits of
+# outlives the call) and waits up to $WAIT s, 420 by default (the kit's set-up may take 90 s of the call's 600); stage w waits up to
+# $WAIT s, 540 by default, more (call it at once, only when a did not print "all done"). Expected: ~2 min set-up and capture, 5 fits of
 # ~1 min, 10 render and 40 evaluate jobs of a few seconds each, one at a time on the one GPU: 9-12 min in all.
 # Each stage copies to $OUT: Snakemake's output, the job table (benchmarks/job_timeline.py: start and end of every
 # job, the device its log names), the plan (plan_tables), the tables' Markdown.
@@ -67,6 +67,6 @@ PY
      export -f snake; export W REPO VARIANTS
      setsid bash -c 'snake all_tables --config preset=run23 "$VARIANTS" > "$W/snakemake.out" 2>&1; echo $? > "$W/rc"' \
        < /dev/null > /dev/null 2>&1 &
-     sleep 5; wait_run 420 ;;
+     sleep 5; wait_run "${WAIT:-420}" ;;
   w) wait_run "${WAIT:-540}" ;;
 esac
