@@ -249,7 +249,7 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _rest_root(body_model: BodyModel, betas) -> np.ndarray:
     """J0(betas): the shaped root joint, about which SMPL-X applies the global orientation."""
     with torch.no_grad():
-        rest = body_model(torch.zeros(1, NUM_JOINTS, 3, dtype=body_model.dtype), _tensor(betas, body_model))
+        rest = body_model(_tensor(np.zeros((1, NUM_JOINTS, 3)), body_model), _tensor(betas, body_model))
     return rest.joints[0, 0].double().cpu().numpy()
 
 

@@ -34,7 +34,7 @@ class Timeline:
             self.source = "training poses"
         else:
             motion = read_motion(motion_path, hands_mean=model.body_model.hands_mean.cpu().numpy())
-            self.motion = align_motion(motion, model.body_model, driver.refined()[0], self.up, ground, self.centre)
+            self.motion = align_motion(motion, model.body_model, driver.refined()[0].cpu(), self.up, ground, self.centre)
             self.fps = float(self.motion.fps)
             self.length = self.motion.num_frames
             self.source = str(motion_path)
