@@ -57,10 +57,11 @@ class _Latest:
 class Viewer:
     """A viser server showing the avatar of `driver` along `timeline`; `capture` (a pig.data.capture.Capture or
     None) adds its cameras and ground truth images. `path` is "browser" or "server" (see the module's doc);
-    `jpeg_quality` is the server path's frame encoding. Call `close()` to stop it."""
+    `jpeg_quality` is the server path's frame encoding; `render_height` (None: the page's canvas size) caps the
+    height of the frames it renders, the page stretching them over its canvas. Call `close()` to stop it."""
 
     def __init__(self, driver: AvatarDriver, timeline: Timeline, capture=None, path: str = "browser",
-                 host: str = "127.0.0.1", port: int = 8080, jpeg_quality: int = 85):
+                 host: str = "127.0.0.1", port: int = 8080, jpeg_quality: int = 85, render_height: int | None = None):
         import viser
 
         if path not in PATHS:
@@ -68,6 +69,9 @@ class Viewer:
         model = driver.model
         self.driver, self.timeline, self.capture, self.path = driver, timeline, capture, path
         self.jpeg_quality = jpeg_quality
+        if render_height is not None and render_height < 1:
+            raise ValueError(f"viewer render_height must be a positive number of pixels, got {render_height}")
+        self.render_height = render_height
         self._lock = threading.Lock()  # one frame at a time through the driver (its CUDA graph outputs are shared)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_layout="floating", dark_mode=True, show_share_button=False)
@@ -211,6 +215,8 @@ class Viewer:
             return
         if width < 1 or height < 1:
             return
+        if self.render_height is not None and height > self.render_height:  # same field of view, fewer pixels
+            width, height = max(1, round(width * self.render_height / height)), self.render_height
         viewmat, K = viser_view(wxyz, position, fov, width, height)
         device = self.driver.device
         with self._lock:
@@ -251,9 +257,10 @@ def viser_view(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, h
 
 
 def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path | None = None, host: str = "127.0.0.1",
-                port: int = 8080, device: str = "auto", path: str | None = None) -> Viewer:
+                port: int = 8080, device: str = "auto", path: str | None = None, render_height: int | None = None
+                ) -> Viewer:
     """Load the avatar of `checkpoint` on `device` and serve it; `path` defaults to "server" on CUDA (gsplat
-    renders there) and "browser" elsewhere."""
+    renders there) and "browser" elsewhere; `render_height` as `Viewer`'s."""
     from pig.avatar.checkpoint import load_avatar
     from pig.config import resolve_device
     from pig.data.capture import Capture
@@ -269,4 +276,4 @@ def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path 
         path = "server" if torch.device(device).type == "cuda" else "browser"
     if device.type == "cuda":
         timeline.gaussians(model.num_levels - 1, 0)  # compile and capture the frame before a page waits for it
-    return Viewer(driver, timeline, capture, path, host, port)
+    return Viewer(driver, timeline, capture, path, host, port, render_height=render_height)
