@@ -29,6 +29,9 @@ def main(argv: list[str] | None = None) -> int:
     add_device_argument(parser)
     parser.add_argument("--draw", choices=["browser", "server"], default=None,
                         help="where splats are drawn (default: server on CUDA, browser otherwise)")
+    parser.add_argument("--render-height", type=int, default=None,
+                        help="server drawing: height in pixels of the rendered frames, stretched over the page "
+                             "(default: the page's own on CUDA, 240 on the CPU)")
     add_common_arguments(parser)
     args = parser.parse_args(argv)
     try:
@@ -37,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
         raise OSError("the viewer needs viser: pip install -e '.[viewer]'") from None
     from pig.viewer.app import open_viewer
 
-    viewer = open_viewer(args.checkpoint, args.motion, args.capture, args.host, args.port, args.device, args.draw)
+    viewer = open_viewer(args.checkpoint, args.motion, args.capture, args.host, args.port, args.device, args.draw,
+                         args.render_height)
     print(f"viewer on {viewer.url} (Ctrl+C to stop)", flush=True)
     try:
         while True:

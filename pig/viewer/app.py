@@ -27,6 +27,9 @@ from .timeline import Timeline
 
 ORBIT = "orbit"
 PATHS = ("browser", "server")
+# The server path's frame height on the CPU: the compositor's time grows with the pixels (~75 ms a frame at 320 x 240,
+# 16k splats, one core), and a pose change should reach the page within ~200 ms (benchmarks/NOTES.md, viewer).
+CPU_RENDER_HEIGHT = 240
 
 
 class _Latest:
@@ -260,7 +263,7 @@ def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path 
                 port: int = 8080, device: str = "auto", path: str | None = None, render_height: int | None = None
                 ) -> Viewer:
     """Load the avatar of `checkpoint` on `device` and serve it; `path` defaults to "server" on CUDA (gsplat
-    renders there) and "browser" elsewhere; `render_height` as `Viewer`'s."""
+    renders there) and "browser" elsewhere; `render_height` as `Viewer`'s, default CPU_RENDER_HEIGHT on the CPU."""
     from pig.avatar.checkpoint import load_avatar
     from pig.config import resolve_device
     from pig.data.capture import Capture
@@ -274,6 +277,8 @@ def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path 
     capture = Capture.load(capture_dir) if capture_dir is not None else None
     if path is None:
         path = "server" if torch.device(device).type == "cuda" else "browser"
+    if render_height is None and device.type != "cuda":
+        render_height = CPU_RENDER_HEIGHT
     if device.type == "cuda":
         timeline.gaussians(model.num_levels - 1, 0)  # compile and capture the frame before a page waits for it
     return Viewer(driver, timeline, capture, path, host, port, render_height=render_height)
