@@ -247,7 +247,7 @@ def test_viewer_in_headless_chromium(tiny_fit, tmp_path):
 
     capture_dir, checkpoint = tiny_fit
     width, height = 640, 480
-    viewer = open_viewer(checkpoint, None, capture_dir, port=free_port(), device="cpu")
+    viewer = open_viewer(checkpoint, None, capture_dir, port=free_port(), device="cpu", path="browser")
     try:
         capture = Capture.load(capture_dir)
         name = capture.split["train"]["cameras"][0]

@@ -4,8 +4,9 @@ and, at a capture camera, the ground truth image beside the render.
 Two drawing paths. `browser`: the level's splats go to the page as viser Gaussian splats (the LOD's anchors are
 the prefix of the anchor list that the level holds), drawn there with their view-independent colour; the server
 sends new splats only when the frame or the level changes. `server`: the server renders every connected
-client's view with the project's renderer (gsplat on CUDA: exact, view-dependent colour) through the driver's
-real-time path and streams JPEG frames; the page shows them as its background.
+client's view with the project's renderer (gsplat on CUDA, the compositor on the CPU: exact, view-dependent
+colour) through the driver's real-time path and streams JPEG frames; the page shows them as its background,
+stretched over its canvas where they are smaller (`render_height`, the CPU's default).
 
 Updates run on worker threads that always take the latest state, so dragging the slider faster than frames
 are made skips frames instead of queueing them.
@@ -27,9 +28,10 @@ from .timeline import Timeline
 
 ORBIT = "orbit"
 PATHS = ("browser", "server")
-# The server path's frame height on the CPU: the compositor's time grows with the pixels (~75 ms a frame at 320 x 240,
-# 16k splats, one core), and a pose change should reach the page within ~200 ms (benchmarks/NOTES.md, viewer).
-CPU_RENDER_HEIGHT = 240
+# The server path's frame height on the CPU: the compositor's time grows with the pixels (16k splats: ~35 ms a frame
+# at 240 x 180, ~70 ms at 320 x 240), and at 180 lines a pose change reaches a page on a 2-core machine in < 200 ms
+# (benchmarks/NOTES.md, "The viewer on the CPU"); the page stretches the frames over its canvas.
+CPU_RENDER_HEIGHT = 180
 
 
 class _Latest:
@@ -262,8 +264,9 @@ def viser_view(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, h
 def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path | None = None, host: str = "127.0.0.1",
                 port: int = 8080, device: str = "auto", path: str | None = None, render_height: int | None = None
                 ) -> Viewer:
-    """Load the avatar of `checkpoint` on `device` and serve it; `path` defaults to "server" on CUDA (gsplat
-    renders there) and "browser" elsewhere; `render_height` as `Viewer`'s, default CPU_RENDER_HEIGHT on the CPU."""
+    """Load the avatar of `checkpoint` on `device` and serve it; `path` defaults to "server" (on the CPU too: a
+    browser without a GPU draws 16k splats several times slower than the CPU renders a small frame);
+    `render_height` as `Viewer`'s, default CPU_RENDER_HEIGHT on the CPU."""
     from pig.avatar.checkpoint import load_avatar
     from pig.config import resolve_device
     from pig.data.capture import Capture
@@ -276,7 +279,7 @@ def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path 
     timeline = Timeline(driver, motion)
     capture = Capture.load(capture_dir) if capture_dir is not None else None
     if path is None:
-        path = "server" if torch.device(device).type == "cuda" else "browser"
+        path = "server"
     if render_height is None and device.type != "cuda":
         render_height = CPU_RENDER_HEIGHT
     if device.type == "cuda":
