@@ -81,7 +81,8 @@ window.Worker = class extends PlainWorker {
     super(...args);
     this.addEventListener('message', e => {
       const messages = (e.data && e.data.messages) || [];
-      const drawn = m => /Background|Gaussian/.test(m.type) || (m.type === 'SceneNodeUpdateMessage' && 'buffer' in m.updates);
+      const drawn = m => /Background|Gaussian/.test(m.type)
+                         || (m.type === 'SceneNodeUpdateMessage' && 'buffer' in m.updates);
       if (messages.some(drawn)) window.__pigArrivals.push([performance.now(), 1]);
     });
   }
