@@ -2,15 +2,16 @@
 
 Each sample clicks the timeline's slider at the next frame and times, in the page's own clock, from the slider's
 pointerdown event to the first animation frame whose canvas pixels differ from those before it (a 160 x 120
-downsample, >= 20 pixels changed by > 30 levels summed over RGB). Beside it, the server's share, timed apart: the
+downsample, >= 20 pixels changed by > 30 levels summed over RGB), split at the arrival in the page of the splats or
+the frame that the change sent (viser's websocket worker posting them to the page). Beside it, the server's share, timed apart: the
 frame's splats from the driver (`Timeline.gaussians`), then either their conversion for viser (`browser_splats`,
 `--draw browser`: the page draws the splats) or the CPU renderer's frame at the rendered size and its JPEG
 (`--draw server`: the page shows the server's frames, `--render-height` lines stretched over its canvas); and the
 CPU time that the browser's processes and the server's threads spend per pose change: on a machine shared with
 other jobs the wall time waits for the cores, the CPU time does not.
 
-    python benchmarks/viewer_latency.py                                  # an unfitted cpu-demo avatar, 16k splats
-    python benchmarks/viewer_latency.py --draw server --render-height 240
+    python benchmarks/viewer_latency.py                    # an unfitted cpu-demo avatar, 16k splats, the server's frames
+    python benchmarks/viewer_latency.py --draw browser     # the splats drawn in the page
     python benchmarks/viewer_latency.py --checkpoint avatar.pt --capture capture/ --screenshot docs/viewer_cpu.png
 
 --screenshot saves the page (jumped to the capture's first training camera when --capture is given).
@@ -30,7 +31,7 @@ import torch
 
 from pig.avatar.driver import AvatarDriver
 from pig.field.precondition import bake_preconditioning
-from pig.viewer.app import Viewer
+from pig.viewer.app import CPU_RENDER_HEIGHT, Viewer
 from pig.viewer.browser import HeadlessChromium
 from pig.viewer.splats import browser_splats
 from pig.viewer.timeline import Timeline
@@ -145,9 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--samples", type=int, default=10, help="pose changes to time")
     parser.add_argument("--size", type=int, nargs=2, default=(800, 600), metavar=("WIDTH", "HEIGHT"), help="page size")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads of the server")
-    parser.add_argument("--draw", choices=["browser", "server"], default="browser", help="where splats are drawn")
-    parser.add_argument("--render-height", type=int, default=None,
-                        help="--draw server: height of the rendered frames (default: the page's canvas)")
+    parser.add_argument("--draw", choices=["browser", "server"], default="server",
+                        help="where splats are drawn (default: server, as the view stage on the CPU)")
+    parser.add_argument("--render-height", type=int, default=CPU_RENDER_HEIGHT,
+                        help=f"--draw server: height of the rendered frames (default: {CPU_RENDER_HEIGHT}, the view "
+                             "stage's on the CPU)")
     parser.add_argument("--screenshot", type=Path, help="save the page as this PNG")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
