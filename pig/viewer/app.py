@@ -29,8 +29,8 @@ from .timeline import Timeline
 ORBIT = "orbit"
 PATHS = ("browser", "server")
 # The server path's frame height on the CPU: the compositor's time grows with the pixels (16k splats: ~35 ms a frame
-# at 240 x 180, ~70 ms at 320 x 240), and at 180 lines a pose change reaches a page on a 2-core machine in < 200 ms
-# (benchmarks/NOTES.md, "The viewer on the CPU"); the page stretches the frames over its canvas.
+# at 240 x 180, ~70 ms at 320 x 240); at 180 lines a pose change reaches a page on a loaded 2-core machine in
+# 170-240 ms (benchmarks/NOTES.md, "The viewer on the CPU"); the page stretches the frames over its canvas.
 CPU_RENDER_HEIGHT = 180
 
 
