@@ -157,9 +157,11 @@ def test_motion_timeline_is_the_aligned_motion(trained_looking_avatar):
 
 
 @pytest.mark.skipif(not VISER, reason="viser is not installed (pip install -e '.[viewer]')")
-def test_server_path_streams_the_renderers_image_of_the_clients_camera(trained_looking_avatar):
+@pytest.mark.parametrize("render_height", [None, 72])
+def test_server_path_streams_the_renderers_image_of_the_clients_camera(trained_looking_avatar, render_height):
     """The server path on the CPU: a scripted client reports a camera (as a browser does) and receives a JPEG that
-    equals the project's renderer at that camera, whose world-to-camera matrix is built here by look-at."""
+    equals the project's renderer at that camera, whose world-to-camera matrix is built here by look-at. With a
+    `render_height` below the canvas's, the frame has that height, the canvas's aspect and its field of view."""
     import cv2
 
     from pig.avatar.animation import look_at
@@ -172,8 +174,9 @@ def test_server_path_streams_the_renderers_image_of_the_clients_camera(trained_l
     model = trained_looking_avatar
     driver = AvatarDriver(model, frame_graph=True)
     timeline = Timeline(driver)
-    viewer = Viewer(driver, timeline, path="server", port=free_port(), jpeg_quality=100)
+    viewer = Viewer(driver, timeline, path="server", port=free_port(), jpeg_quality=100, render_height=render_height)
     width, height, fov = 96, 72, math.radians(40.0)
+    canvas_width, canvas_height = (width, height) if render_height is None else (2 * width, 2 * height)
     centre, extent = timeline.bounds()
     up = np.asarray(timeline.up, dtype=np.float64)
     side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -190,7 +193,7 @@ def test_server_path_streams_the_renderers_image_of_the_clients_camera(trained_l
     try:
         client = ViserClient(f"ws://127.0.0.1:{viewer.server.get_port()}")
         try:
-            client.send(camera_message(eye, centre, up, fov, width, height))
+            client.send(camera_message(eye, centre, up, fov, canvas_width, canvas_height))
             expected, frames = reference(eye), []
             # A frame is made per camera report (and one may predate ours): the last one is of our camera.
             while (data := client.next_frame(20.0 if not frames else 2.0)) is not None:
@@ -244,7 +247,7 @@ def test_viewer_in_headless_chromium(tiny_fit, tmp_path):
 
     capture_dir, checkpoint = tiny_fit
     width, height = 640, 480
-    viewer = open_viewer(checkpoint, None, capture_dir, port=free_port(), device="cpu")
+    viewer = open_viewer(checkpoint, None, capture_dir, port=free_port(), device="cpu", path="browser")
     try:
         capture = Capture.load(capture_dir)
         name = capture.split["train"]["cameras"][0]

@@ -2,7 +2,8 @@
 
 It serves a page on --host:--port and writes nothing; the capture's cameras show its ground truth beside the render.
 
-Without a GPU the splats are drawn in the browser; on CUDA the server renders each view (pig.viewer.app). Needs
+The server renders each view (pig.viewer.app): on CUDA at the page's size, on the CPU 180 pixels high stretched over
+the page; `--draw browser` sends the splats to the page instead (fast where its WebGL runs on a GPU). Needs
 the `viewer` extra (pip install -e '.[viewer]'). Example:
 
     pig view --checkpoint results/synthetic/s0/pig/avatar.pt --capture results/synthetic/s0/capture
@@ -28,7 +29,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8080, help="port to serve on (default: 8080)")
     add_device_argument(parser)
     parser.add_argument("--draw", choices=["browser", "server"], default=None,
-                        help="where splats are drawn (default: server on CUDA, browser otherwise)")
+                        help="where splats are drawn (default: server)")
+    parser.add_argument("--render-height", type=int, default=None,
+                        help="server drawing: height in pixels of the rendered frames, stretched over the page "
+                             "(default: the page's own on CUDA, 180 on the CPU)")
     add_common_arguments(parser)
     args = parser.parse_args(argv)
     try:
@@ -37,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
         raise OSError("the viewer needs viser: pip install -e '.[viewer]'") from None
     from pig.viewer.app import open_viewer
 
-    viewer = open_viewer(args.checkpoint, args.motion, args.capture, args.host, args.port, args.device, args.draw)
+    viewer = open_viewer(args.checkpoint, args.motion, args.capture, args.host, args.port, args.device, args.draw,
+                         args.render_height)
     print(f"viewer on {viewer.url} (Ctrl+C to stop)", flush=True)
     try:
         while True:

@@ -4,8 +4,9 @@ and, at a capture camera, the ground truth image beside the render.
 Two drawing paths. `browser`: the level's splats go to the page as viser Gaussian splats (the LOD's anchors are
 the prefix of the anchor list that the level holds), drawn there with their view-independent colour; the server
 sends new splats only when the frame or the level changes. `server`: the server renders every connected
-client's view with the project's renderer (gsplat on CUDA: exact, view-dependent colour) through the driver's
-real-time path and streams JPEG frames; the page shows them as its background.
+client's view with the project's renderer (gsplat on CUDA, the compositor on the CPU: exact, view-dependent
+colour) through the driver's real-time path and streams JPEG frames; the page shows them as its background,
+stretched over its canvas where they are smaller (`render_height`, the CPU's default).
 
 Updates run on worker threads that always take the latest state, so dragging the slider faster than frames
 are made skips frames instead of queueing them.
@@ -27,6 +28,10 @@ from .timeline import Timeline
 
 ORBIT = "orbit"
 PATHS = ("browser", "server")
+# The server path's frame height on the CPU: the compositor's time grows with the pixels (16k splats: ~35 ms a frame
+# at 240 x 180, ~70 ms at 320 x 240); at 180 lines a pose change reaches a page on a loaded 2-core machine in
+# 170-240 ms (benchmarks/NOTES.md, "The viewer on the CPU"); the page stretches the frames over its canvas.
+CPU_RENDER_HEIGHT = 180
 
 
 class _Latest:
@@ -57,10 +62,11 @@ class _Latest:
 class Viewer:
     """A viser server showing the avatar of `driver` along `timeline`; `capture` (a pig.data.capture.Capture or
     None) adds its cameras and ground truth images. `path` is "browser" or "server" (see the module's doc);
-    `jpeg_quality` is the server path's frame encoding. Call `close()` to stop it."""
+    `jpeg_quality` is the server path's frame encoding; `render_height` (None: the page's canvas size) caps the
+    height of the frames it renders, the page stretching them over its canvas. Call `close()` to stop it."""
 
     def __init__(self, driver: AvatarDriver, timeline: Timeline, capture=None, path: str = "browser",
-                 host: str = "127.0.0.1", port: int = 8080, jpeg_quality: int = 85):
+                 host: str = "127.0.0.1", port: int = 8080, jpeg_quality: int = 85, render_height: int | None = None):
         import viser
 
         if path not in PATHS:
@@ -68,6 +74,9 @@ class Viewer:
         model = driver.model
         self.driver, self.timeline, self.capture, self.path = driver, timeline, capture, path
         self.jpeg_quality = jpeg_quality
+        if render_height is not None and render_height < 1:
+            raise ValueError(f"viewer render_height must be a positive number of pixels, got {render_height}")
+        self.render_height = render_height
         self._lock = threading.Lock()  # one frame at a time through the driver (its CUDA graph outputs are shared)
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_layout="floating", dark_mode=True, show_share_button=False)
@@ -211,6 +220,8 @@ class Viewer:
             return
         if width < 1 or height < 1:
             return
+        if self.render_height is not None and height > self.render_height:  # same field of view, fewer pixels
+            width, height = max(1, round(width * self.render_height / height)), self.render_height
         viewmat, K = viser_view(wxyz, position, fov, width, height)
         device = self.driver.device
         with self._lock:
@@ -251,9 +262,11 @@ def viser_view(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, h
 
 
 def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path | None = None, host: str = "127.0.0.1",
-                port: int = 8080, device: str = "auto", path: str | None = None) -> Viewer:
-    """Load the avatar of `checkpoint` on `device` and serve it; `path` defaults to "server" on CUDA (gsplat
-    renders there) and "browser" elsewhere."""
+                port: int = 8080, device: str = "auto", path: str | None = None, render_height: int | None = None
+                ) -> Viewer:
+    """Load the avatar of `checkpoint` on `device` and serve it; `path` defaults to "server" (on the CPU too: a
+    browser without a GPU draws 16k splats several times slower than the CPU renders a small frame);
+    `render_height` as `Viewer`'s, default CPU_RENDER_HEIGHT on the CPU."""
     from pig.avatar.checkpoint import load_avatar
     from pig.config import resolve_device
     from pig.data.capture import Capture
@@ -266,7 +279,9 @@ def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path 
     timeline = Timeline(driver, motion)
     capture = Capture.load(capture_dir) if capture_dir is not None else None
     if path is None:
-        path = "server" if torch.device(device).type == "cuda" else "browser"
+        path = "server"
+    if render_height is None and device.type != "cuda":
+        render_height = CPU_RENDER_HEIGHT
     if device.type == "cuda":
         timeline.gaussians(model.num_levels - 1, 0)  # compile and capture the frame before a page waits for it
-    return Viewer(driver, timeline, capture, path, host, port)
+    return Viewer(driver, timeline, capture, path, host, port, render_height=render_height)
