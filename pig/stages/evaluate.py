@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -25,6 +26,7 @@ import torch
 from pig.config import load_preset, load_section, resolve_device
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
 from pig.data.raw import CaptureError
+from pig.data.render_store import RenderReader, check_capture, read_manifest
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
 from pig.metrics.geometry import ground_truth_geometry
 from pig.metrics.lpips import LPIPS
@@ -34,7 +36,7 @@ from pig.metrics.ssim import ssim, ssim_map
 from pig.metrics.weights import WeightsMissing
 from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
-from pig.stages._io import read_png, read_record, write_json, write_text
+from pig.stages._io import read_record, write_json, write_text
 from pig.stages._outputs import claim_files
 
 
@@ -53,6 +55,17 @@ class EvaluateConfig:
     # Frames of a split, evenly spaced with its first and last, on which a synthetic capture's geometry error is
     # measured: each costs an exact nearest-surface query per splat. The drift follows all frames.
     geometry_frames: int = 4
+    # Render storage (pig.data.render_store): lossless codec `webp` or `png`, frames per chunk file, threads that
+    # encode (render) and decode (evaluate) views, and whether to also write every view as PNG + alpha/depth EXR.
+    render_codec: Literal["webp", "png"] = "webp"
+    chunk_frames: int = 16
+    encode_workers: int = 2
+    every_view: bool = False
+
+    def __post_init__(self):
+        if self.chunk_frames < 1 or self.encode_workers < 1 or self.batch_size < 1:
+            raise ValueError(f"evaluate: chunk_frames, encode_workers and batch_size must be >= 1, got "
+                             f"{self.chunk_frames}, {self.encode_workers}, {self.batch_size}")
 
 
 # The render stage passes on the note of the avatar's fit (pig.avatar.losses.fit_note: the LPIPS term of Eq. 15
@@ -97,34 +110,24 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
         by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
     batches = [pairs[i:i + cfg.batch_size] for pairs in by_size.values() for i in range(0, len(pairs), cfg.batch_size)]
     rows, fake_features, real_features = [], FeatureStatistics(), FeatureStatistics()
-    for batch in progress_bar(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch"):
-        renders = np.stack([read_png(level_dir / cam / f"{frame:08d}.png") for cam, frame in batch])
-        truths = np.stack([capture.image(cam, frame) * capture.mask(cam, frame)[..., None] for cam, frame in batch])
-        if renders.shape != truths.shape:
-            raise ValueError(f"{level_dir}: renders are {renders.shape[1:3]} but the capture's images are {truths.shape[1:3]}")
-        x = torch.from_numpy(renders).permute(0, 3, 1, 2).to(device)
-        y = torch.from_numpy(np.ascontiguousarray(truths, dtype=np.float32)).permute(0, 3, 1, 2).to(device)
-        blank = torch.zeros_like(y)
-        with torch.no_grad():
-            similarity = ssim_map(x, y)
-            values = {
-                "psnr": psnr(x, y),
-                "ssim": similarity.flatten(1).mean(1),  # = ssim(x, y, reduction="none")
-                "lpips": lpips_net(x, y) if lpips_net is not None else torch.full((len(batch),), math.nan),
-                "psnr_blank": psnr(blank, y),
-                "ssim_blank": ssim(blank, y, reduction="none"),
-            }
-            if labeller is not None:
-                labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in batch])).to(device)
-                region_values = {"psnr": region_psnr(x, y, labels), "ssim": region_ssim(similarity, labels)}
-                for metric, per_region in region_values.items():
-                    for region, code in REGIONS.items():
-                        values[f"{metric}_{region}"] = per_region[:, code]
-            if inception is not None:
-                fake_features.update(inception(x).double().cpu().numpy())
-                real_features.update(inception(y).double().cpu().numpy())
-        for i, (cam, frame) in enumerate(batch):
-            rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
+    reader = RenderReader(level_dir)
+
+    def truth(view):
+        return capture.image(*view) * capture.mask(*view)[..., None]
+
+    with ThreadPoolExecutor(cfg.encode_workers, thread_name_prefix="evaluate-decode") as pool:
+        # Decoding (OpenCV, off the GIL) of the next batch overlaps the metrics of this one.
+        def load(batch):
+            return pool.map(lambda view: reader.image(*view), batch), pool.map(truth, batch)
+
+        loaded = [load(batch) for batch in batches[:1]]
+        for b, batch in enumerate(progress_bar(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch")):
+            if b + 1 < len(batches):
+                loaded.append(load(batches[b + 1]))
+            renders_iter, truths_iter = loaded.pop(0)
+            renders, truths = np.stack(list(renders_iter)), np.stack(list(truths_iter))
+            rows.extend(_score_batch(batch, renders, truths, level_dir, lpips_net, inception, device, labeller,
+                                     fake_features, real_features))
     table = pd.DataFrame(rows)
     summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
     if labeller is not None:
@@ -135,6 +138,38 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
         fid, fid_note = fid_from_statistics(fake_features, real_features, cfg.fid_min_images)
     summary.update(fid=fid, fid_images=len(table), fid_min_images=cfg.fid_min_images, fid_note=fid_note)
     return table, summary
+
+
+def _score_batch(batch, renders, truths, level_dir, lpips_net, inception, device, labeller, fake_features,
+                 real_features) -> list[dict]:
+    """Per-image metric rows of one batch; FID features go into the running statistics."""
+    rows = []
+    if renders.shape != truths.shape:
+        raise ValueError(f"{level_dir}: renders are {renders.shape[1:3]} but the capture's images are {truths.shape[1:3]}")
+    x = torch.from_numpy(renders).permute(0, 3, 1, 2).to(device)
+    y = torch.from_numpy(np.ascontiguousarray(truths, dtype=np.float32)).permute(0, 3, 1, 2).to(device)
+    blank = torch.zeros_like(y)
+    with torch.no_grad():
+        similarity = ssim_map(x, y)
+        values = {
+            "psnr": psnr(x, y),
+            "ssim": similarity.flatten(1).mean(1),  # = ssim(x, y, reduction="none")
+            "lpips": lpips_net(x, y) if lpips_net is not None else torch.full((len(batch),), math.nan),
+            "psnr_blank": psnr(blank, y),
+            "ssim_blank": ssim(blank, y, reduction="none"),
+        }
+        if labeller is not None:
+            labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in batch])).to(device)
+            region_values = {"psnr": region_psnr(x, y, labels), "ssim": region_ssim(similarity, labels)}
+            for metric, per_region in region_values.items():
+                for region, code in REGIONS.items():
+                    values[f"{metric}_{region}"] = per_region[:, code]
+        if inception is not None:
+            fake_features.update(inception(x).double().cpu().numpy())
+            real_features.update(inception(y).double().cpu().numpy())
+    for i, (cam, frame) in enumerate(batch):
+        rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
+    return rows
 
 
 def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig,
@@ -158,6 +193,9 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     capture = Capture.load(capture_dir, cache_mb=0)
     if split not in capture.split:
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
+    manifest = read_manifest(split_dir)
+    if manifest is not None:  # per-view PNGs of other tools carry no manifest: nothing to check them against
+        check_capture(manifest, capture.fingerprint(), split_dir / "manifest.json")
     views, listed = len(capture.views(split)), len(capture.split[split]["cameras"]) * len(capture.split[split]["frames"])
     if views == 0:
         raise FileNotFoundError(f"{capture_dir}: split {split!r} has no view with an image and a mask to score")
