@@ -9,6 +9,7 @@ render stage's `--every-view` option) reads the same way.
 from __future__ import annotations
 
 import json
+import zipfile
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -150,7 +151,7 @@ class RenderReader:
                 if missing:
                     raise CaptureError(f"{path}: missing {missing}; expected {CHUNK_EXPECTED}")
                 frames, offsets, data, codec = (arrays[key] for key in CHUNK_KEYS)
-        except (OSError, ValueError, EOFError) as err:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
             raise CaptureError(f"{path}: not a readable .npz ({err}); expected {CHUNK_EXPECTED}") from None
         codec = str(codec)
         if (codec not in CODECS or frames.ndim != 1 or offsets.shape != (len(frames) + 1,) or data.dtype != np.uint8
