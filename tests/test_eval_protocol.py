@@ -6,6 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from skimage.metrics import structural_similarity
+from test_metrics import empty_hub  # noqa: F401 (a fixture)
 
 from pig.metrics.protocol import crop_to_mask_box, mask_box, protocol, ssim_uniform
 
@@ -76,3 +77,48 @@ def test_pytorch_fid_resize_is_bilinear_without_antialiasing(rng):
                                                    antialias=True, align_corners=False))
     large = torch.from_numpy(rng.random((1, 3, 600, 500)))  # downscaled: the two rules differ
     assert (resize_for_inception(large, "antialiased_bilinear") - resize_for_inception(large, "pytorch_fid")).abs().max() > 0.1
+
+
+def test_evaluate_by_animatable_gaussians_protocol_and_the_tables_name_it(tmp_path, empty_hub, rng):
+    """SSIM by scikit-image's defaults on the full frame, LPIPS (AlexNet: quicker than VGG here) on the crop rule's crops, PSNR unchanged;
+    the summary and the table headers name the protocol, and mixed protocols are refused."""
+    import json
+
+    import pandas as pd
+    import yaml
+    from test_metrics import _reference_alex_lpips, _tiny_capture, _write_lpips_weights
+
+    from pig.stages._io import read_png
+    from pig.stages.evaluate import main as evaluate
+    from pig.stages.tables import make_tables
+
+    torch.manual_seed(0)
+    backbone, linear = _write_lpips_weights("alex", empty_hub, tmp_path / "alex.pth")
+    capture, renders = _tiny_capture(tmp_path, rng)
+    metrics = {}
+    for name in ("ours", "animatable_gaussians"):
+        profile = tmp_path / f"{name}.yaml"
+        profile.write_text(yaml.safe_dump({"evaluate": {"lpips_net": "alex", "protocol": name, "device": "cpu",
+                                                        "lpips_linear_weights": str(tmp_path / "alex.pth")}}))
+        metrics[name] = tmp_path / "results" / "dna" / name / "pig" / "metrics"
+        assert evaluate(["--capture", str(capture), "--renders", str(renders), "--split", "novel_view",
+                         "--output", str(metrics[name]), "--preset", str(profile)]) == 0
+    ours, peer = (json.loads((metrics[n] / "novel_view_lod0.json").read_text())
+                  for n in ("ours", "animatable_gaussians"))
+    render = read_png(renders / "lod0" / "cam00" / "00000000.png")
+    mask = cv2.imread(str(capture / "masks" / "cam00" / "00000000.png"), cv2.IMREAD_GRAYSCALE) > 127
+    truth = read_png(capture / "images" / "cam00" / "00000000.png") * mask[..., None]
+    assert peer["protocol"] == "animatable_gaussians" and ours["protocol"] == "ours" and ours["protocol_note"] == ""
+    assert peer["psnr"] == pytest.approx(ours["psnr"], abs=1e-9)
+    assert peer["ssim"] == pytest.approx(structural_similarity(render, truth, channel_axis=-1, data_range=1), abs=1e-6)
+    crops = [torch.from_numpy(_reference_crop(image, mask, 50, 512)).permute(2, 0, 1)[None] for image in (render, truth)]
+    assert peer["lpips"] == pytest.approx(float(_reference_alex_lpips(backbone, linear, *crops)), rel=1e-4)
+
+    tables = tmp_path / "tables"
+    make_tables("dna", [metrics["animatable_gaussians"] / "novel_view_lod0.json"], [], ["pig"], tables)
+    columns = set(pd.read_csv(tables / "dna.csv").columns)
+    assert {"novel_view_psnr", "novel_view_ssim_animatable_gaussians", "novel_view_lpips_alex_animatable_gaussians",
+            "novel_view_fid_animatable_gaussians"} <= columns and "novel_view_ssim" not in columns
+    assert "AnimatableGaussians: SSIM scikit-image defaults" in (tables / "dna.md").read_text()
+    with pytest.raises(ValueError, match="different protocols"):
+        make_tables("dna", [metrics[n] / "novel_view_lod0.json" for n in metrics], [], ["pig"], tmp_path / "mixed")

@@ -30,6 +30,7 @@ from pig.data.render_store import RenderReader, check_capture, read_manifest
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
 from pig.metrics.geometry import ground_truth_geometry
 from pig.metrics.lpips import LPIPS
+from pig.metrics.protocol import Protocol, crop_to_mask_box, protocol, ssim_uniform
 from pig.metrics.psnr import psnr
 from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssim
 from pig.metrics.ssim import ssim, ssim_map
@@ -44,6 +45,9 @@ from pig.stages._outputs import claim_files
 class EvaluateConfig:
     """Preset section `evaluate` (read by the render, evaluate and tables stages)."""
 
+    # How peers score (pig.metrics.protocol): `ours`, or `animatable_gaussians` (its SSIM window and crop); the
+    # summaries and the tables name it.
+    protocol: Literal["ours", "animatable_gaussians"] = "ours"
     lpips_net: Literal["alex", "vgg"] = "alex"  # LPIPS backbone; peers report either, the tables name it
     lpips_backbone_weights: str | None = None  # torchvision checkpoint; None: torch hub cache
     lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
@@ -113,7 +117,8 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
     reader = RenderReader(level_dir)
 
     def truth(view):
-        return capture.image(*view) * capture.mask(*view)[..., None]
+        mask = capture.mask(*view)
+        return capture.image(*view) * mask[..., None], mask
 
     with ThreadPoolExecutor(cfg.encode_workers, thread_name_prefix="evaluate-decode") as pool:
         # Decoding (OpenCV, off the GIL) of the next batch overlaps the metrics of this one.
@@ -125,9 +130,10 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
             if b + 1 < len(batches):
                 loaded.append(load(batches[b + 1]))
             renders_iter, truths_iter = loaded.pop(0)
-            renders, truths = np.stack(list(renders_iter)), np.stack(list(truths_iter))
-            rows.extend(_score_batch(batch, renders, truths, level_dir, lpips_net, inception, device, labeller,
-                                     fake_features, real_features))
+            truths, masks = zip(*truths_iter)
+            renders, truths, masks = np.stack(list(renders_iter)), np.stack(truths), np.stack(masks)
+            rows.extend(_score_batch(batch, renders, truths, masks, level_dir, lpips_net, inception, device,
+                                     labeller, fake_features, real_features, protocol(cfg.protocol)))
     table = pd.DataFrame(rows)
     summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
     if labeller is not None:
@@ -140,9 +146,9 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
     return table, summary
 
 
-def _score_batch(batch, renders, truths, level_dir, lpips_net, inception, device, labeller, fake_features,
-                 real_features) -> list[dict]:
-    """Per-image metric rows of one batch; FID features go into the running statistics."""
+def _score_batch(batch, renders, truths, masks, level_dir, lpips_net, inception, device, labeller, fake_features,
+                 real_features, rules: Protocol) -> list[dict]:
+    """Per-image metric rows of one batch by the protocol's `rules`; FID features go into the running statistics."""
     rows = []
     if renders.shape != truths.shape:
         raise ValueError(f"{level_dir}: renders are {renders.shape[1:3]} but the capture's images are {truths.shape[1:3]}")
@@ -151,10 +157,12 @@ def _score_batch(batch, renders, truths, level_dir, lpips_net, inception, device
     blank = torch.zeros_like(y)
     with torch.no_grad():
         similarity = ssim_map(x, y)
+        # LPIPS and FID see the protocol's crop; PSNR, SSIM and the regions the full frame.
+        xc, yc = (x, y) if not rules.crop else [crop_to_mask_box(t, torch.from_numpy(masks).to(device)) for t in (x, y)]
         values = {
             "psnr": psnr(x, y),
-            "ssim": similarity.flatten(1).mean(1),  # = ssim(x, y, reduction="none")
-            "lpips": lpips_net(x, y) if lpips_net is not None else torch.full((len(batch),), math.nan),
+            "ssim": similarity.flatten(1).mean(1) if rules.ssim_window == "gaussian11" else ssim_uniform(x, y).float(),
+            "lpips": lpips_net(xc, yc) if lpips_net is not None else torch.full((len(batch),), math.nan),
             "psnr_blank": psnr(blank, y),
             "ssim_blank": ssim(blank, y, reduction="none"),
         }
@@ -165,8 +173,8 @@ def _score_batch(batch, renders, truths, level_dir, lpips_net, inception, device
                 for region, code in REGIONS.items():
                     values[f"{metric}_{region}"] = per_region[:, code]
         if inception is not None:
-            fake_features.update(inception(x).double().cpu().numpy())
-            real_features.update(inception(y).double().cpu().numpy())
+            fake_features.update(inception(xc).double().cpu().numpy())
+            real_features.update(inception(yc).double().cpu().numpy())
     for i, (cam, frame) in enumerate(batch):
         rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
     return rows
@@ -205,7 +213,9 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     device = resolve_device(cfg.device)
     lpips_net, lpips_note = _load_metric(
         lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights).to(device), "LPIPS")
-    inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
+    rules = protocol(cfg.protocol)
+    inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights, rules.fid_resize).to(device),
+                                       "FID")
     truth = TrueMeshes.load(capture_dir / GT_MESHES) if (capture_dir / GT_MESHES).is_file() else None
     labeller = None
     if truth is not None:
@@ -222,7 +232,8 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
             summary.update(ground_truth_geometry(_splat_track(level_dir, capture, split), truth, cfg.geometry_frames))
         timing = read_record(level_dir / "timing.json", "the render stage's timing record (splats, model_mb, fps, device)")
         timing.setdefault("fit_note", UNRECORDED_FIT_NOTE)
-        summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, **timing)
+        summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, protocol=cfg.protocol,
+                       protocol_note=rules.note if cfg.protocol != "ours" else "", **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
         write_json(output_dir / f"{split}_lod{level}.json", summary)
