@@ -1,5 +1,7 @@
 """Evaluation protocols (pig.metrics.protocol) against their references: scikit-image's SSIM, the crop rule by
 OpenCV, pytorch-fid's resize."""
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -122,3 +124,16 @@ def test_evaluate_by_animatable_gaussians_protocol_and_the_tables_name_it(tmp_pa
     assert "AnimatableGaussians: SSIM scikit-image defaults" in (tables / "dna.md").read_text()
     with pytest.raises(ValueError, match="different protocols"):
         make_tables("dna", [metrics[n] / "novel_view_lod0.json" for n in metrics], [], ["pig"], tmp_path / "mixed")
+
+
+def test_inception_is_not_taken_from_tmp(tmp_path, empty_hub, monkeypatch):
+    """A TorchScript file is code: one in a folder anyone can write (clean-fid's /tmp) is never loaded."""
+    from pig.metrics import fid
+    from pig.metrics.weights import WeightsMissing
+
+    world = tmp_path / "world"
+    world.mkdir()
+    torch.jit.script(torch.nn.Identity()).save(str(world / fid.INCEPTION_FILE))
+    monkeypatch.setattr(fid, "Path", lambda *parts: world if parts == ("/tmp",) else Path(*parts))
+    with pytest.raises(WeightsMissing, match=r"weights file inception-2015-12-05.pt not found \(searched [^,]*\)"):
+        fid.InceptionFeatures()

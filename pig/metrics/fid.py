@@ -158,7 +158,8 @@ class InceptionFeatures(torch.nn.Module):
     def __init__(self, weights: str | Path | None = None, resize: str = "antialiased_bilinear"):
         super().__init__()
         self.resize = resize
-        path = locate(INCEPTION_FILE, weights, [Path("/tmp")], "FID Inception network")
+        # Not /tmp, where clean-fid drops it: anyone can write there, and the file is code (TorchScript).
+        path = locate(INCEPTION_FILE, weights, [], "FID Inception network")
         try:
             self.model = torch.jit.load(str(path), map_location="cpu").eval()
         except Exception as err:  # TorchScript raises RuntimeError or ValueError for foreign files

@@ -51,7 +51,7 @@ class EvaluateConfig:
     lpips_net: Literal["alex", "vgg"] = "alex"  # LPIPS backbone; peers report either, the tables name it
     lpips_backbone_weights: str | None = None  # torchvision checkpoint; None: torch hub cache
     lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
-    inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: hub cache or /tmp
+    inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: torch hub cache
     fid_min_images: int = DEFAULT_MIN_IMAGES  # FID over fewer images per set is flagged as biased (still computed)
     batch_size: int = 8
     device: str = "auto"  # "auto": CUDA when available
