@@ -101,12 +101,12 @@ class InceptionStandIn(torch.nn.Module):
         return self.net(x / 127.5 - 1).flatten(1)
 
 
-def write_preset(workdir: Path, preset: str, iterations: int, device: str) -> Path:
+def write_preset(workdir: Path, preset: str, iterations: int, device: str, evaluate: dict) -> Path:
     data = load_preset(preset)
     data.pop("_path", None)
     data.setdefault("fit", {}).update(iterations=iterations, eval_every=10**9, checkpoint_minutes=10**6,
                                       weight_lpips=0.0)  # the fit only makes renders like a real fit's
-    data.setdefault("evaluate", {}).update(lpips_net="vgg", device=device)
+    data.setdefault("evaluate", {}).update(lpips_net="vgg", device=device, **evaluate)
     path = workdir / "eval_scale_preset.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
@@ -138,6 +138,36 @@ def stage_child(module: str, report: str, args: list[str]) -> int:
     return code
 
 
+def codec_table(split_dir: Path, count: int) -> list[dict]:
+    """Bytes per view, encode and decode ms per view (one thread) of each lossless codec on `count` rendered views
+    of the finest LOD, read back from the render stage's storage."""
+    from pig.data.images import decode_image
+    from pig.data.render_store import CODECS, RenderReader, encode_image
+
+    level = max(int(p.name[3:]) for p in split_dir.glob("lod*"))
+    reader = RenderReader(split_dir / f"lod{level}")
+    manifest = json.loads((split_dir / "manifest.json").read_text())
+    views = [(cam, frame) for frame in manifest["frames"] for cam in manifest["cameras"]][:count]
+    images = [reader.image_u8(cam, frame) for cam, frame in views]
+    rows = []
+    print(f"\n{len(images)} views of {split_dir.name} lod{level}, {images[0].shape[1]} x {images[0].shape[0]}, one thread")
+    print(f"{'codec':<6} {'KB/view':>8} {'encode ms':>10} {'decode ms':>10}")
+    for codec in CODECS:
+        start = time.perf_counter()
+        streams = [encode_image(image, codec) for image in images]
+        encode = time.perf_counter() - start
+        start = time.perf_counter()
+        decoded = [decode_image(stream, codec) for stream in streams]
+        decode = time.perf_counter() - start
+        if not all(np.array_equal(d[..., ::-1], image) for d, image in zip(decoded, images)):
+            raise SystemExit(f"{codec}: a view did not decode to the same pixels")
+        row = {"codec": codec, "bytes_per_view": sum(s.size for s in streams) / len(images),
+               "encode_ms": 1000 * encode / len(images), "decode_ms": 1000 * decode / len(images)}
+        rows.append(row)
+        print(f"{codec:<6} {row['bytes_per_view'] / 1024:>8.1f} {row['encode_ms']:>10.1f} {row['decode_ms']:>10.1f}")
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", type=Path, required=True)
@@ -153,6 +183,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="checkout whose stages run (PYTHONPATH); default: the one this script imports")
     parser.add_argument("--splits", nargs="+", default=["novel_view", "novel_pose"])
     parser.add_argument("--tag", default="", help="name of this code's results folder (default: new/other)")
+    parser.add_argument("--codec", choices=["png", "webp"], default=None, help="evaluate.render_codec (preset's)")
+    parser.add_argument("--encode-workers", type=int, default=None, help="evaluate.encode_workers (preset's)")
+    parser.add_argument("--batch-size", type=int, default=None, help="evaluate.batch_size (preset's)")
+    parser.add_argument("--codec-sample", type=int, default=0,
+                        help="also time every codec on this many rendered novel-pose views (one thread)")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
@@ -163,7 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     env = {**os.environ, "TORCH_HOME": str(torch_home), "PYTHONPATH": os.pathsep.join(
         [str(args.code.resolve()) if args.code else str(Path(__file__).resolve().parents[1]),
          *filter(None, [os.environ.get("PYTHONPATH")])])}
-    preset = write_preset(args.workdir, args.preset, args.iterations, args.device)
+    evaluate = {key: value for key, value in (("render_codec", args.codec), ("encode_workers", args.encode_workers),
+                                              ("batch_size", args.batch_size)) if value is not None}
+    preset = write_preset(args.workdir, args.preset, args.iterations, args.device, evaluate)
     variant = args.workdir / f"{capture.name}_{args.preset}_{args.iterations}" / "pig"
     if not (variant / "avatar.pt").is_file():
         fitted = run_stage("pig.stages.fit", ["--capture", str(capture), "--output", str(variant), "--preset",
@@ -201,8 +238,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{row['bytes']:>12} {row['bytes'] / row['views']:>8.0f}")
     total = {key: sum(row[key] for row in rows) for key in ("wall_s", "bytes")}
     print(f"{'total':<14} {'':<11} {'':>7} {total['wall_s']:>8.1f} {'':>8} {'':>8} {'':>8} {total['bytes']:>12}")
+    codecs = codec_table(results / "renders" / "novel_pose", args.codec_sample) if args.codec_sample else []
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "args": {k: str(v) for k, v in vars(args).items()}}, indent=1))
+        args.json.write_text(json.dumps({"rows": rows, "codecs": codecs, "args": {k: str(v) for k, v in vars(args).items()}}, indent=1))
     return 0
 
 
