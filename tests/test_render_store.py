@@ -31,7 +31,7 @@ def _textured(rng, frames: int, height: int = 37, width: int = 53) -> np.ndarray
 def test_chunks_round_trip_exactly_and_read_like_per_view_pngs(codec, tmp_path, rng):
     images = _textured(rng, 5)
     frames = [3, 4, 7, 8, 11]
-    encoder = ChunkEncoder(codec, workers=2, pending=1)
+    encoder = ChunkEncoder(codec, workers=2, pending=1, pending_views=1)  # both waits taken
     for frame, image in zip(frames[:3], images[:3]):
         encoder.add(chunk_path(tmp_path / "lod0", "cam00", 3), frame, image)
     encoder.finish_chunk(chunk_path(tmp_path / "lod0", "cam00", 3))

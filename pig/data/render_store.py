@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -91,12 +92,15 @@ class ChunkEncoder:
     """Encodes views on worker threads (OpenCV releases the GIL) and writes each chunk once all its views are in.
 
     `add` hands over one view; `finish_chunk` queues the chunk's write behind its views' encodings. At most
-    `pending` chunks wait, which bounds the memory held by views not yet written."""
+    `pending_views` views wait for their encoding (`add` blocks for the oldest: the renderer never runs far ahead of
+    the encoders) and `pending` chunks for their write, which bounds the memory held by views not yet written."""
 
-    def __init__(self, codec: str, workers: int = 2, pending: int = 64):
+    def __init__(self, codec: str, workers: int = 2, pending: int = 16, pending_views: int | None = None):
         if codec not in CODECS:
             raise ValueError(f"unknown render codec {codec!r}; expected one of {sorted(CODECS)}")
         self.codec, self.pending = codec, pending
+        self.pending_views = pending_views or 8 * max(1, workers)
+        self.encodings: deque[Future] = deque()
         self.pool = ThreadPoolExecutor(max(1, workers), thread_name_prefix="render-encode")
         self.views: dict[Path, tuple[list[int], list[Future]]] = {}
         self.writes: list[Future] = []
@@ -106,6 +110,9 @@ class ChunkEncoder:
         frames, encoded = self.views.setdefault(path, ([], []))
         frames.append(frame)
         encoded.append(self.pool.submit(encode_image, image, self.codec))
+        self.encodings.append(encoded[-1])
+        while len(self.encodings) > self.pending_views:
+            self.encodings.popleft().result()
 
     def finish_chunk(self, path: Path) -> None:
         frames, encoded = self.views.pop(path)
