@@ -116,8 +116,17 @@ def test_evaluate_by_animatable_gaussians_protocol_and_the_tables_name_it(tmp_pa
     crops = [torch.from_numpy(_reference_crop(image, mask, 50, 512)).permute(2, 0, 1)[None] for image in (render, truth)]
     assert peer["lpips"] == pytest.approx(float(_reference_alex_lpips(backbone, linear, *crops)), rel=1e-4)
 
+    # The weights that scored the LPIPS column, by name and SHA-256 (FID had none), in the summary and the notes.
+    import hashlib
+
+    from pig.metrics.weights import TORCHVISION_FILES
+
+    digests = [f"{path.name} (sha256 {hashlib.sha256(path.read_bytes()).hexdigest()[:12]})"
+               for path in (empty_hub / TORCHVISION_FILES["alex"], tmp_path / "alex.pth")]
+    assert peer["weights_note"] == "scored with weights " + ", ".join(digests)
     tables = tmp_path / "tables"
     make_tables("dna", [metrics["animatable_gaussians"] / "novel_view_lod0.json"], [], ["pig"], tables)
+    assert peer["weights_note"] in (tables / "dna.md").read_text()
     columns = set(pd.read_csv(tables / "dna.csv").columns)
     assert {"novel_view_psnr", "novel_view_ssim_animatable_gaussians", "novel_view_lpips_alex_animatable_gaussians",
             "novel_view_fid_animatable_gaussians"} <= columns and "novel_view_ssim" not in columns

@@ -12,6 +12,7 @@ stage's splats (lod{l}/splats.npz; pig.metrics.geometry) in the summary. Real ca
 from __future__ import annotations
 
 import argparse
+import hashlib
 import math
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -34,7 +35,8 @@ from pig.metrics.protocol import Protocol, crop_to_mask_box, protocol, ssim_unif
 from pig.metrics.psnr import psnr
 from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssim
 from pig.metrics.ssim import ssim, ssim_map
-from pig.metrics.weights import WeightsMissing
+from pig.metrics.weights import (INCEPTION_FILE, LPIPS_LINEAR_FILES, TORCHVISION_FILES, WeightsMissing, locate,
+                                 lpips_package_weights)
 from pig.progress import progress_bar
 from pig.stages._cli import add_common_arguments, add_preset_argument, run_cli
 from pig.stages._io import read_record, write_json, write_text
@@ -93,6 +95,29 @@ def _load_metric(build, what: str) -> tuple[torch.nn.Module | None, str]:
         print(f"[evaluate] {what} is NaN: {err}")
         # The table's note names the file; the full search path list stays in the log.
         return None, f"{what} is NaN: {str(err).split(' (searched')[0]}"
+
+
+def weights_note(cfg: EvaluateConfig, lpips_loaded: bool, inception_loaded: bool) -> str:
+    """Which files scored the LPIPS and FID columns (found as the metrics find them), each with the first 12 hex
+    digits of its SHA-256, for the summaries and the tables' notes; '' when neither metric had weights."""
+    files = []
+    if lpips_loaded:
+        files += [locate(TORCHVISION_FILES[cfg.lpips_net], cfg.lpips_backbone_weights, [], "LPIPS backbone"),
+                  locate(LPIPS_LINEAR_FILES[cfg.lpips_net], cfg.lpips_linear_weights, [lpips_package_weights()],
+                         "LPIPS linear layers")]
+    if inception_loaded:
+        files.append(locate(INCEPTION_FILE, cfg.inception_weights, [], "FID Inception network"))
+    if not files:
+        return ""
+    return "scored with weights " + ", ".join(f"{path.name} (sha256 {_sha256(path)[:12]})" for path in files)
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 REGION_KEYS = [f"{metric}_{region}" for metric in ("psnr", "ssim") for region in ("garment", "body", "background")]
@@ -217,6 +242,7 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     rules = protocol(cfg.protocol)
     inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights, rules.fid_resize).to(device),
                                        "FID")
+    weights = weights_note(cfg, lpips_net is not None, inception is not None)
     truth = TrueMeshes.load(capture_dir / GT_MESHES) if (capture_dir / GT_MESHES).is_file() else None
     labeller = None
     if truth is not None:
@@ -234,7 +260,8 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         timing = read_record(level_dir / "timing.json", "the render stage's timing record (splats, model_mb, fps, device)")
         timing.setdefault("fit_note", UNRECORDED_FIT_NOTE)
         summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, protocol=cfg.protocol,
-                       protocol_note=rules.note if cfg.protocol != "ours" else "", **timing)
+                       protocol_note=rules.note if cfg.protocol != "ours" else "", weights_note=weights,
+                       **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
         write_json(output_dir / f"{split}_lod{level}.json", summary)
