@@ -20,19 +20,19 @@ from pathlib import Path
 import numpy as np
 
 from pig.data.capture import Capture
-from pig.data.images import read_png
+from pig.data.render_store import RenderReader
 
 
 def level_flicker(capture: Capture, level_dir: Path, cameras: list[str], frames: list[int]) -> dict[str, float]:
     render_steps, truth_steps, excess, ratios = [], [], [], []
+    reader = RenderReader(level_dir)  # chunks, or per-view PNGs
     for cam in cameras:
         previous = None
         for frame in frames:
-            path = level_dir / cam / f"{frame:08d}.png"
-            if not path.exists() or not capture.has(cam, frame):
+            if not reader.has(cam, frame) or not capture.has(cam, frame):
                 previous = None
                 continue
-            render = read_png(path)
+            render = reader.image(cam, frame)
             truth = capture.image(cam, frame) * capture.mask(cam, frame)[..., None]
             if previous is not None:
                 d_render, d_truth = render - previous[0], truth - previous[1]

@@ -232,8 +232,16 @@ def _jpeg_declaring(width: int, height: int) -> bytes:
     return bytes(data)
 
 
+def _webp_declaring(width: int, height: int) -> bytes:
+    """A small real WebP with alpha whose VP8X chunk is rewritten to declare a width x height canvas."""
+    data = bytearray(cv2.imencode(".webp", np.zeros((8, 8, 4), np.uint8), [cv2.IMWRITE_WEBP_QUALITY, 80])[1].tobytes())
+    assert data[12:16] == b"VP8X"
+    data[24:30] = (width - 1).to_bytes(3, "little") + (height - 1).to_bytes(3, "little")
+    return bytes(data)
+
+
 def test_declared_image_size_is_read_from_the_header_and_bounded_before_decoding(tmp_path):
-    for forged in (_png_declaring(30000, 30000), _jpeg_declaring(30000, 30000)):
+    for forged in (_png_declaring(30000, 30000), _jpeg_declaring(30000, 30000), _webp_declaring(30000, 30000)):
         with pytest.raises(CaptureError, match=r"^big: the image header declares 30000x30000 \(WxH\) pixels, more "
                                                r"than the 100,000,000 expected here; not decoded"):
             decode_image(forged, "big")
@@ -248,11 +256,14 @@ def test_declared_image_size_is_read_from_the_header_and_bounded_before_decoding
     from pig.data.images import declared_size
 
     rng = np.random.default_rng(1)
-    for ext in (".png", ".jpg"):  # the header parser against OpenCV's decoded shape
-        image = rng.integers(0, 256, (37, 53, 3), dtype=np.uint8)
-        data = cv2.imencode(ext, image)[1].tobytes()
+    for ext, channels, params in ((".png", 3, []), (".jpg", 3, []), (".webp", 3, [cv2.IMWRITE_WEBP_QUALITY, 101]),
+                                  (".webp", 3, [cv2.IMWRITE_WEBP_QUALITY, 80]), (".webp", 4, [cv2.IMWRITE_WEBP_QUALITY, 80])):
+        # the header parser against OpenCV's decoded shape (WebP: lossless VP8L, lossy VP8, lossy with alpha VP8X)
+        image = rng.integers(0, 256, (37, 53, channels), dtype=np.uint8)
+        data = cv2.imencode(ext, image, params)[1].tobytes()
         assert declared_size(data) == (53, 37) == cv2.imdecode(np.frombuffer(data, np.uint8), 1).shape[1::-1]
     assert declared_size(_png_declaring(30000, 20000)) == declared_size(_jpeg_declaring(30000, 20000)) == (30000, 20000)
+    assert declared_size(_webp_declaring(30000, 20000)) == (30000, 20000)
 
 
 # -- item 12: inputs that are not regular files ------------------------------------------------------------------

@@ -35,7 +35,13 @@ ENCODINGS = {
     "progressive jpeg": lambda im: _encode(im, ".jpg", cv2.IMWRITE_JPEG_PROGRESSIVE, 1),
     "png": lambda im: _encode(im, ".png"),
     "grey png": lambda im: _encode(im[..., 0], ".png"),
+    # The render stage's lossless chunks (VP8L), and the other two first chunks of the container: lossy (VP8) and
+    # lossy with alpha (VP8X).
+    "lossless webp": lambda im: _encode(im, ".webp", cv2.IMWRITE_WEBP_QUALITY, 101),
+    "lossy webp": lambda im: _encode(im, ".webp", cv2.IMWRITE_WEBP_QUALITY, 80),
+    "alpha webp": lambda im: _encode(np.dstack([im, im[..., :1]]), ".webp", cv2.IMWRITE_WEBP_QUALITY, 80),
 }
+TRUNCATED = {"jpeg": "truncated or corrupt JPEG", "png": "truncated PNG", "webp": "truncated WebP"}
 
 
 @pytest.mark.parametrize("kind", sorted(ENCODINGS))
@@ -52,7 +58,7 @@ def test_complete_images_decode_exactly_as_opencv_with_padding_or_trailing_bytes
 def test_a_cut_image_is_an_error_naming_the_source(kind, fraction):
     data = ENCODINGS[kind](_photo())
     cut = data[:int(len(data) * fraction)]
-    expected = "truncated or corrupt JPEG" if "jpeg" in kind else "truncated PNG"
+    expected = TRUNCATED[kind.split()[-1]]
     with pytest.raises(CaptureError, match=rf"^images/cam03/00000007\.x: {expected} \({len(cut)} bytes"):
         decode_image(cut, "images/cam03/00000007.x")
     with pytest.raises(CaptureError, match=expected):

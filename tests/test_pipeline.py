@@ -15,7 +15,10 @@ import pandas as pd
 import pytest
 import yaml
 
+from pig.data.capture import Capture
+from pig.data.capture_record import RECORD
 from pig.data.exr import read_exr, write_exr
+from pig.data.render_store import RenderReader, read_manifest
 from pig.stages.tables import BLANK_ROW, make_tables
 
 REPO = Path(__file__).resolve().parent.parent
@@ -125,13 +128,17 @@ def test_workflow_end_to_end(tmp_path):
     assert (lod["splats"].diff().dropna() > 0).all() and (lod["fps"] > 0).all()
     for name in ("synthetic.md", "synthetic_lod.md", "synthetic_training.png"):
         assert (tables / name).stat().st_size > 0
-    # Renders: one PNG and one EXR (alpha, depth) per camera and frame of each split and LOD.
+    # Renders: chunks holding every camera and frame of each split and LOD, no per-view PNG or EXR by default; the
+    # manifest lists them and capture.json records the capture.
     renders = work / "results" / "synthetic" / "subject00" / "pig" / "renders"
+    split_json = json.loads((work / "results" / "synthetic" / "subject00" / "capture" / "split.json").read_text())
+    capture = Capture.load(work / "results" / "synthetic" / "subject00" / "capture")
     for split in ("novel_view", "novel_pose"):
-        pngs = sorted(renders.glob(f"{split}/lod0/*/*.png"))
-        assert pngs and len(pngs) == len(list(renders.glob(f"{split}/lod0/*/*.exr")))
-        exr = read_exr(pngs[0].with_suffix(".exr"))
-        assert set(exr) == {"A", "Z"} and 0 <= exr["A"].min() and exr["A"].max() <= 1 + 1e-5
+        assert not list(renders.glob(f"{split}/lod0/*/*.png")) and not list(renders.glob(f"{split}/lod0/*/*.exr"))
+        assert read_manifest(renders / split)["frames"] == [int(f) for f in split_json[split]["frames"]]
+        assert json.loads((renders / split / RECORD).read_text())["fingerprint"] == capture.fingerprint()
+        reader = RenderReader(renders / split / "lod0")
+        assert all(reader.has(cam, int(frame)) for cam in split_json[split]["cameras"] for frame in split_json[split]["frames"])
 
     # The report: the workflow's description, the tables in their captions, the training plot and a montage of
     # each split, each embedded.

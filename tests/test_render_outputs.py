@@ -2,8 +2,9 @@
 splat centres and opacities of `splats.npz`, recomputed here from the checkpoint through the model's forward (not
 the stage's driver) and `render_gaussians`; `model_mb` of timing.json against the checkpoint's tensors.
 
-`_stored_view` and `_stored_splats` read the stage's current storage (PNG + EXR per view, splats.npz per level):
-they are the only places to change when that storage changes.
+`_stored_view` and `_stored_splats` read the stage's current storage (colour in 8-bit lossless chunks through
+RenderReader; alpha and depth in the EXR per view that `every_view` adds; splats.npz per level): they are the only
+places to change when that storage changes.
 """
 import json
 
@@ -15,9 +16,9 @@ from pig.avatar.checkpoint import load_avatar
 from pig.data.capture import Capture
 from pig.data.exr import read_exr
 from pig.data.ground_truth import SPLATS, SplatTrack
+from pig.data.render_store import RenderReader
 from pig.field.precondition import bake_preconditioning
 from pig.render.api import RasterizerConfig, render_gaussians
-from pig.stages._io import read_png
 from pig.stages.evaluate import EvaluateConfig
 from pig.stages.render import render_split
 
@@ -25,7 +26,7 @@ from pig.stages.render import render_split
 def _stored_view(level_dir, camera: str, frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rgb in [0, 1] (H, W, 3), alpha (H, W), depth (H, W)) of one view as the render stage stored it."""
     exr = read_exr(level_dir / camera / f"{frame:08d}.exr")
-    return read_png(level_dir / camera / f"{frame:08d}.png"), exr["A"], exr["Z"]
+    return RenderReader(level_dir).image(camera, frame), exr["A"], exr["Z"]
 
 
 def _stored_splats(level_dir) -> SplatTrack:
@@ -37,7 +38,8 @@ def rendered(tiny_fit, tmp_path_factory):
     """(capture, avatar.pt, renders of the novel-pose split) of the tiny fit, through the render stage."""
     capture_dir, checkpoint = tiny_fit
     out = tmp_path_factory.mktemp("render_outputs") / "renders"
-    render_split(checkpoint, capture_dir, "novel_pose", out, EvaluateConfig(timing_frames=1), RasterizerConfig(backend="cpu"))
+    render_split(checkpoint, capture_dir, "novel_pose", out, EvaluateConfig(timing_frames=1), RasterizerConfig(backend="cpu"),
+                 every_view=True)
     return capture_dir, checkpoint, out
 
 

@@ -8,8 +8,8 @@ import pandas as pd
 import pytest
 
 from pig.avatar.training import fit
+from pig.data.render_store import RenderReader
 from pig.render.api import RasterizerConfig
-from pig.data.images import read_png
 from pig.stages.evaluate import EvaluateConfig, evaluate_split
 from pig.stages.render import render_split
 
@@ -55,9 +55,10 @@ def test_render_and_evaluate_a_split_with_two_image_sizes(fitted, tmp_path):
     assert not (renders / "stale.png").exists() and [p.name for p in renders.parent.iterdir()] == ["novel_pose"]
 
     cameras = json.loads((capture / "cameras.json").read_text())
+    reader = RenderReader(renders / "lod0")
     for cam in split["cameras"]:
         for frame in split["frames"]:
-            image = read_png(renders / "lod0" / cam / f"{int(frame):08d}.png")
+            image = reader.image(cam, int(frame))
             assert image.shape[:2] == (cameras[cam]["height"], cameras[cam]["width"]), cam
     assert cameras[small]["width"] * 2 == cameras[split["cameras"][1]]["width"]
 
@@ -71,7 +72,7 @@ def test_render_and_evaluate_a_split_with_two_image_sizes(fitted, tmp_path):
 
     loaded = Capture.load(capture)
     for row in table.itertuples():
-        render = read_png(renders / "lod0" / row.camera / f"{int(row.frame):08d}.png").astype(np.float64)
+        render = reader.image(row.camera, int(row.frame)).astype(np.float64)
         truth = loaded.image(row.camera, int(row.frame)) * loaded.mask(row.camera, int(row.frame))[..., None]
         expected = 10 * np.log10(1.0 / np.mean((render - truth) ** 2))
         assert row.psnr == pytest.approx(expected, abs=1e-3), row.camera

@@ -137,16 +137,29 @@ def fid_from_statistics(fake: FeatureStatistics, real: FeatureStatistics,
     return frechet_distance(fake.mean, fake.covariance(), real.mean, real.covariance()), small_set_note(images, min_images)
 
 
+def resize_for_inception(images: torch.Tensor, rule: str = "antialiased_bilinear") -> torch.Tensor:
+    """(B, 3, 299, 299) of (B, 3, H, W): bilinear with half-pixel centres, antialiased (`antialiased_bilinear`,
+    this project's rule) or not (`pytorch_fid`, that tool's F.interpolate call); unchanged at 299 x 299."""
+    if rule not in ("antialiased_bilinear", "pytorch_fid"):
+        raise ValueError(f"FID resize rule must be 'antialiased_bilinear' or 'pytorch_fid', found {rule!r}")
+    if images.shape[-2:] == (INCEPTION_SIZE, INCEPTION_SIZE):
+        return images
+    return F.interpolate(images, size=(INCEPTION_SIZE, INCEPTION_SIZE), mode="bilinear", align_corners=False,
+                         antialias=rule == "antialiased_bilinear")
+
+
 class InceptionFeatures(torch.nn.Module):
     """TorchScript Inception feature extractor: images (B, 3, H, W) in [0, 1] -> (B, D) pool features.
 
-    Images are resized to 299 x 299 (bilinear, antialiased) and scaled to [0, 255] floats, the input
+    Images are resized to 299 x 299 (`resize`: see resize_for_inception) and scaled to [0, 255] floats, the input
     clean-fid gives the same network (`model(x, return_features=True)`). Raises `WeightsMissing`.
     """
 
-    def __init__(self, weights: str | Path | None = None):
+    def __init__(self, weights: str | Path | None = None, resize: str = "antialiased_bilinear"):
         super().__init__()
-        path = locate(INCEPTION_FILE, weights, [Path("/tmp")], "FID Inception network")
+        self.resize = resize
+        # Not /tmp, where clean-fid drops it: anyone can write there, and the file is code (TorchScript).
+        path = locate(INCEPTION_FILE, weights, [], "FID Inception network")
         try:
             self.model = torch.jit.load(str(path), map_location="cpu").eval()
         except Exception as err:  # TorchScript raises RuntimeError or ValueError for foreign files
@@ -156,7 +169,6 @@ class InceptionFeatures(torch.nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         if images.dim() != 4 or images.shape[1] != 3:
             raise ValueError(f"InceptionFeatures expects (B, 3, H, W) images, found {tuple(images.shape)}")
-        if images.shape[-2:] != (INCEPTION_SIZE, INCEPTION_SIZE):
-            images = F.interpolate(images, size=(INCEPTION_SIZE, INCEPTION_SIZE), mode="bilinear", antialias=True, align_corners=False)
+        images = resize_for_inception(images, self.resize)
         features = self.model(images.clamp(0, 1) * 255, return_features=True)
         return features.reshape(images.shape[0], -1)

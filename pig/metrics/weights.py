@@ -1,7 +1,8 @@
 """Where the pretrained metric networks' weights are looked up on disk; nothing is downloaded.
 
 Search order per file: a configured path, the torch hub cache ($TORCH_HOME/hub/checkpoints, by
-default ~/.cache/torch/hub/checkpoints), then tool-specific places (the lpips package, clean-fid's /tmp).
+default ~/.cache/torch/hub/checkpoints), then the lpips package's folder for its linear layers; never a folder
+anyone can write (clean-fid's /tmp).
 """
 from __future__ import annotations
 

@@ -49,18 +49,19 @@ def error_map(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 def montage_views(capture, split_dir: Path, split: str, count: int = 4) -> list[MontageView]:
     """Ground truth, finest-LOD render and error of `count` views of `split` in the loaded `capture`."""
-    from pig.data.images import read_png
+    from pig.data.render_store import RenderReader
 
     level, _ = finest_level(split_dir)
+    reader = RenderReader(split_dir / f"lod{level}")
     views = capture.views(split)
     if not views:
         raise FileNotFoundError(f"{capture.root}: split {split!r} has no view with an image and a mask")
     chosen = []
     for camera, frame in spread(views, count):
         truth = capture.image(camera, frame) * capture.mask(camera, frame)[..., None]
-        render = read_png(split_dir / f"lod{level}" / camera / f"{frame:08d}.png")
+        render = reader.image(camera, frame)
         if render.shape != truth.shape:
-            raise ValueError(f"{split_dir / f'lod{level}' / camera / f'{frame:08d}.png'}: render is "
+            raise ValueError(f"{reader.source(camera, frame)}: render is "
                              f"{render.shape[1]}x{render.shape[0]} (WxH), the capture's image "
                              f"{truth.shape[1]}x{truth.shape[0]}")
         chosen.append(MontageView(camera, frame, truth, render, error_map(render, truth)))

@@ -11,8 +11,10 @@ stage's splats (lod{l}/splats.npz; pig.metrics.geometry) in the summary. Real ca
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -24,15 +26,17 @@ import torch
 from pig.config import Bounds, load_preset, load_section, resolve_device
 from pig.data.capture_record import read_capture_record, require_same_capture
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack, TrueMeshes
-from pig.data.images import read_png
 from pig.data.raw import CaptureError
+from pig.data.render_store import RenderReader
 from pig.metrics.fid import DEFAULT_MIN_IMAGES, FeatureStatistics, InceptionFeatures, fid_from_statistics
 from pig.metrics.geometry import ground_truth_geometry
 from pig.metrics.lpips import LPIPS
+from pig.metrics.protocol import Protocol, crop_to_mask_box, protocol, ssim_uniform
 from pig.metrics.psnr import psnr
 from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssim
 from pig.metrics.ssim import ssim, ssim_map
-from pig.metrics.weights import WeightsMissing
+from pig.metrics.weights import (INCEPTION_FILE, LPIPS_LINEAR_FILES, TORCHVISION_FILES, WeightsMissing, locate,
+                                 lpips_package_weights)
 from pig.progress import progress_bar
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 from pig._io import read_record, write_json, write_text
@@ -43,10 +47,13 @@ from pig._outputs import claim_files
 class EvaluateConfig:
     """Preset section `evaluate` (read by the render, evaluate and tables stages)."""
 
+    # How peers score (pig.metrics.protocol): `ours`, or `animatable_gaussians` (its SSIM window and crop); the
+    # summaries and the tables name it.
+    protocol: Literal["ours", "animatable_gaussians"] = "ours"
     lpips_net: Literal["alex", "vgg"] = "alex"  # LPIPS backbone; peers report either, the tables name it
     lpips_backbone_weights: str | None = None  # torchvision checkpoint; None: torch hub cache
     lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
-    inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: hub cache or /tmp
+    inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: torch hub cache
     fid_min_images: int = DEFAULT_MIN_IMAGES  # FID over fewer images per set is flagged as biased (still computed)
     batch_size: Annotated[int, Bounds(ge=1)] = 8
     device: str = "auto"  # "auto": CUDA when available
@@ -54,6 +61,13 @@ class EvaluateConfig:
     # Frames of a split, evenly spaced with its first and last, on which a synthetic capture's geometry error is
     # measured: each costs an exact nearest-surface query per splat. The drift follows all frames.
     geometry_frames: int = 4
+    # Render storage (pig.data.render_store): lossless codec, frames per chunk file, threads that encode (render)
+    # and decode (evaluate) views, and whether to also write every view as PNG + alpha/depth EXR. `png` encodes
+    # ~6x faster than `webp` (OpenCV's lossless WebP), which is ~25-45 % smaller (benchmarks/NOTES.md).
+    render_codec: Literal["png", "webp"] = "png"
+    chunk_frames: Annotated[int, Bounds(ge=1)] = 16
+    encode_workers: Annotated[int, Bounds(ge=1)] = 2
+    every_view: bool = False
 
 
 # The render stage passes on the note of the avatar's fit (pig.avatar.losses.fit_note: the LPIPS term of Eq. 15
@@ -78,6 +92,29 @@ def _load_metric(build, what: str) -> tuple[torch.nn.Module | None, str]:
         return None, f"{what} is NaN: {str(err).split(' (searched')[0]}"
 
 
+def weights_note(cfg: EvaluateConfig, lpips_loaded: bool, inception_loaded: bool) -> str:
+    """Which files scored the LPIPS and FID columns (found as the metrics find them), each with the first 12 hex
+    digits of its SHA-256, for the summaries and the tables' notes; '' when neither metric had weights."""
+    files = []
+    if lpips_loaded:
+        files += [locate(TORCHVISION_FILES[cfg.lpips_net], cfg.lpips_backbone_weights, [], "LPIPS backbone"),
+                  locate(LPIPS_LINEAR_FILES[cfg.lpips_net], cfg.lpips_linear_weights, [lpips_package_weights()],
+                         "LPIPS linear layers")]
+    if inception_loaded:
+        files.append(locate(INCEPTION_FILE, cfg.inception_weights, [], "FID Inception network"))
+    if not files:
+        return ""
+    return "scored with weights " + ", ".join(f"{path.name} (sha256 {_sha256(path)[:12]})" for path in files)
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 REGION_KEYS = [f"{metric}_{region}" for metric in ("psnr", "ssim") for region in ("garment", "body", "background")]
 
 
@@ -98,34 +135,26 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
         by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
     batches = [pairs[i:i + cfg.batch_size] for pairs in by_size.values() for i in range(0, len(pairs), cfg.batch_size)]
     rows, fake_features, real_features = [], FeatureStatistics(), FeatureStatistics()
-    for batch in progress_bar(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch"):
-        renders = np.stack([read_png(level_dir / cam / f"{frame:08d}.png") for cam, frame in batch])
-        truths = np.stack([capture.image(cam, frame) * capture.mask(cam, frame)[..., None] for cam, frame in batch])
-        if renders.shape != truths.shape:
-            raise ValueError(f"{level_dir}: renders are {renders.shape[1:3]} but the capture's images are {truths.shape[1:3]}")
-        x = torch.from_numpy(renders).permute(0, 3, 1, 2).to(device)
-        y = torch.from_numpy(np.ascontiguousarray(truths, dtype=np.float32)).permute(0, 3, 1, 2).to(device)
-        blank = torch.zeros_like(y)
-        with torch.no_grad():
-            similarity = ssim_map(x, y)
-            values = {
-                "psnr": psnr(x, y),
-                "ssim": similarity.flatten(1).mean(1),  # = ssim(x, y, reduction="none")
-                "lpips": lpips_net(x, y) if lpips_net is not None else torch.full((len(batch),), math.nan),
-                "psnr_blank": psnr(blank, y),
-                "ssim_blank": ssim(blank, y, reduction="none"),
-            }
-            if labeller is not None:
-                labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in batch])).to(device)
-                region_values = {"psnr": region_psnr(x, y, labels), "ssim": region_ssim(similarity, labels)}
-                for metric, per_region in region_values.items():
-                    for region, code in REGIONS.items():
-                        values[f"{metric}_{region}"] = per_region[:, code]
-            if inception is not None:
-                fake_features.update(inception(x).double().cpu().numpy())
-                real_features.update(inception(y).double().cpu().numpy())
-        for i, (cam, frame) in enumerate(batch):
-            rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
+    reader = RenderReader(level_dir)
+
+    def truth(view):
+        mask = capture.mask(*view)
+        return capture.image(*view) * mask[..., None], mask
+
+    with ThreadPoolExecutor(cfg.encode_workers, thread_name_prefix="evaluate-decode") as pool:
+        # Decoding (OpenCV, off the GIL) of the next batch overlaps the metrics of this one.
+        def load(batch):
+            return pool.map(lambda view: reader.image(*view), batch), pool.map(truth, batch)
+
+        loaded = [load(batch) for batch in batches[:1]]
+        for b, batch in enumerate(progress_bar(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch")):
+            if b + 1 < len(batches):
+                loaded.append(load(batches[b + 1]))
+            renders_iter, truths_iter = loaded.pop(0)
+            truths, masks = zip(*truths_iter)
+            renders, truths, masks = np.stack(list(renders_iter)), np.stack(truths), np.stack(masks)
+            rows.extend(_score_batch(batch, renders, truths, masks, level_dir, lpips_net, inception, device,
+                                     labeller, fake_features, real_features, protocol(cfg.protocol)))
     table = pd.DataFrame(rows)
     summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
     if labeller is not None:
@@ -136,6 +165,40 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
         fid, fid_note = fid_from_statistics(fake_features, real_features, cfg.fid_min_images)
     summary.update(fid=fid, fid_images=len(table), fid_min_images=cfg.fid_min_images, fid_note=fid_note)
     return table, summary
+
+
+def _score_batch(batch, renders, truths, masks, level_dir, lpips_net, inception, device, labeller, fake_features,
+                 real_features, rules: Protocol) -> list[dict]:
+    """Per-image metric rows of one batch by the protocol's `rules`; FID features go into the running statistics."""
+    rows = []
+    if renders.shape != truths.shape:
+        raise ValueError(f"{level_dir}: renders are {renders.shape[1:3]} but the capture's images are {truths.shape[1:3]}")
+    x = torch.from_numpy(renders).permute(0, 3, 1, 2).to(device)
+    y = torch.from_numpy(np.ascontiguousarray(truths, dtype=np.float32)).permute(0, 3, 1, 2).to(device)
+    blank = torch.zeros_like(y)
+    with torch.no_grad():
+        similarity = ssim_map(x, y)
+        # LPIPS and FID see the protocol's crop; PSNR, SSIM and the regions the full frame.
+        xc, yc = (x, y) if not rules.crop else [crop_to_mask_box(t, torch.from_numpy(masks).to(device)) for t in (x, y)]
+        values = {
+            "psnr": psnr(x, y),
+            "ssim": similarity.flatten(1).mean(1) if rules.ssim_window == "gaussian11" else ssim_uniform(x, y).float(),
+            "lpips": lpips_net(xc, yc) if lpips_net is not None else torch.full((len(batch),), math.nan),
+            "psnr_blank": psnr(blank, y),
+            "ssim_blank": ssim(blank, y, reduction="none"),
+        }
+        if labeller is not None:
+            labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in batch])).to(device)
+            region_values = {"psnr": region_psnr(x, y, labels), "ssim": region_ssim(similarity, labels)}
+            for metric, per_region in region_values.items():
+                for region, code in REGIONS.items():
+                    values[f"{metric}_{region}"] = per_region[:, code]
+        if inception is not None:
+            fake_features.update(inception(xc).double().cpu().numpy())
+            real_features.update(inception(yc).double().cpu().numpy())
+    for i, (cam, frame) in enumerate(batch):
+        rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
+    return rows
 
 
 def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig,
@@ -170,7 +233,10 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     device = resolve_device(cfg.device)
     lpips_net, lpips_note = _load_metric(
         lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights).to(device), "LPIPS")
-    inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights).to(device), "FID")
+    rules = protocol(cfg.protocol)
+    inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights, rules.fid_resize).to(device),
+                                       "FID")
+    weights = weights_note(cfg, lpips_net is not None, inception is not None)
     truth = TrueMeshes.load(capture_dir / GT_MESHES) if (capture_dir / GT_MESHES).is_file() else None
     labeller = None
     if truth is not None:
@@ -187,7 +253,9 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
             summary.update(ground_truth_geometry(_splat_track(level_dir, capture, split), truth, cfg.geometry_frames))
         timing = read_record(level_dir / "timing.json", "the render stage's timing record (splats, model_mb, fps, device)")
         timing.setdefault("fit_note", UNRECORDED_FIT_NOTE)
-        summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, **timing)
+        summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, protocol=cfg.protocol,
+                       protocol_note=rules.note if cfg.protocol != "ours" else "", weights_note=weights,
+                       **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
         write_json(output_dir / f"{split}_lod{level}.json", summary)

@@ -1,4 +1,9 @@
-"""Render stage: every test camera and frame of one split at every LOD, as PNG plus alpha/depth OpenEXR.
+"""Render stage: every test camera and frame of one split at every LOD, as 8-bit lossless chunks per camera.
+
+Storage (pig.data.render_store): one file per (LOD, camera, run of frames), encoded on worker threads, and a
+manifest; capture.json records the capture the views were rendered for (pig.data.capture_record). `--every-view`
+also writes each view as a PNG with alpha and depth in an OpenEXR. A killed run resumes: only the missing chunks
+are rendered again.
 
 A capture with true meshes (synthetic, gt_meshes.npz) also gets each LOD's splat centres and opacities over the
 split's frames (lod{l}/splats.npz) for the evaluate stage's geometry error and correspondence drift.
@@ -10,9 +15,10 @@ work (nearest timestep, body, transport, decoders, rasterization) per LOD for th
 """
 from __future__ import annotations
 
+import hashlib
 import platform
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,12 +29,13 @@ from pig.config import load_preset, load_section, resolve_device
 from pig.data.capture_record import RECORD, capture_record
 from pig.data.exr import write_exr
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
+from pig.data.render_store import ChunkEncoder, chunk_path, write_manifest
 from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 from pig._io import write_json, write_png
-from pig._outputs import build_dir, claim_dir
+from pig._outputs import claim_dir, resumable_dir
 from pig.stages.evaluate import EvaluateConfig
 
 BLACK = (0.0, 0.0, 0.0)  # evaluation background (paper protocol: black, ground truth masked)
@@ -131,13 +138,34 @@ class SplitRenderer:
         return float(np.mean(times))
 
 
+def _file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _to_u8(color: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) float in [0, 1] -> uint8, rounded as `write_png` rounds (half to even), on the render's device."""
+    return (color.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
+
+
 def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, cfg: EvaluateConfig,
-                 rasterizer: RasterizerConfig, overwrite: bool = False) -> None:
-    """Write `output`/lod{l}/... atomically; `output` may replace only an earlier render unless `overwrite`."""
+                 rasterizer: RasterizerConfig, overwrite: bool = False, every_view: bool | None = None) -> None:
+    """Write `output`/lod{l}/{camera}/ chunks (pig.data.render_store), `output`/manifest.json and the capture's
+    record `output`/capture.json; `output` may
+    replace only an earlier render unless `overwrite`.
+
+    Views are rendered a run of `cfg.chunk_frames` frames at a time, each frame at every LOD and camera, encoded on
+    `cfg.encode_workers` threads. A killed run leaves its finished chunks beside `output`; a rerun with the same
+    checkpoint, capture and settings renders only the missing ones. `every_view` (default `cfg.every_view`) also
+    writes every view as {frame:08d}.png with alpha and depth in {frame:08d}.exr."""
     from pig.avatar.checkpoint import load_avatar, loss_terms
     from pig.avatar.losses import fit_note
     from pig.data.capture import Capture
 
+    every_view = cfg.every_view if every_view is None else every_view
     output = claim_dir(output, "render", (checkpoint, capture_dir), overwrite)
     capture = Capture.load(capture_dir)
     if split not in capture.split:
@@ -149,27 +177,50 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     bake_preconditioning(model)
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
     track_splats = (capture_dir / GT_MESHES).is_file()  # for the evaluate stage's geometry error and drift
-    levels = range(model.num_levels)
-    with build_dir(output, "render") as tmp, \
+    levels = list(range(model.num_levels))
+    chunks = [frames[i:i + cfg.chunk_frames] for i in range(0, len(frames), cfg.chunk_frames)]
+    # Everything the chunks depend on: a rerun with any of it changed starts afresh.
+    settings = {"checkpoint_sha256": _file_sha256(checkpoint), "capture": capture.fingerprint(), "split": split,
+                "codec": cfg.render_codec, "chunk_frames": cfg.chunk_frames, "every_view": every_view,
+                "rasterizer": asdict(rasterizer), "device": str(device)}
+    with resumable_dir(output, "render", settings) as work, \
             progress_bar(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
-        write_json(tmp / RECORD, capture_record(capture))  # the capture these renders are for (evaluate checks it)
+        write_json(work / RECORD, capture_record(capture))  # the capture these renders are for (evaluate checks it)
+        encoder = ChunkEncoder(cfg.render_codec, cfg.encode_workers)
+        try:
+            for chunk in chunks:
+                todo = [lod for lod in levels if not _chunk_done(work / f"lod{lod}", cameras, chunk, track_splats)]
+                bar.update(len(chunk) * (len(levels) - len(todo)))
+                tracks = {lod: ([], []) for lod in todo}
+                for frame in chunk:  # each frame once: every LOD and camera of it
+                    for lod in todo:
+                        level_dir = work / f"lod{lod}"
+                        gaussians = renderer.gaussians(frame, lod)
+                        if track_splats:
+                            tracks[lod][0].append(gaussians[0].cpu().numpy())
+                            tracks[lod][1].append(gaussians[3].cpu().numpy())
+                        for cam, result, c in renderer.render(frame, lod, gaussians=gaussians):
+                            image = _to_u8(result.color[c])
+                            encoder.add(chunk_path(level_dir, cam, chunk[0]), frame, image)
+                            if every_view:
+                                write_png(level_dir / cam / f"{frame:08d}.png", image)
+                                write_exr(level_dir / cam / f"{frame:08d}.exr", {
+                                    "A": result.alpha[c, ..., 0].cpu().numpy(), "Z": result.depth[c, ..., 0].cpu().numpy()})
+                        bar.update()
+                for lod in todo:
+                    if track_splats:  # before the chunks: a chunk present means its piece of the track is too
+                        SplatTrack(np.asarray(chunk), np.stack(tracks[lod][0]), np.stack(tracks[lod][1])).save(
+                            _track_piece(work / f"lod{lod}", chunk[0]))
+                    for cam in cameras:
+                        encoder.finish_chunk(chunk_path(work / f"lod{lod}", cam, chunk[0]))
+        finally:
+            encoder.close()
         for lod in levels:
-            level_dir = tmp / f"lod{lod}"
-            centres, opacities = [], []
-            for frame in frames:
-                gaussians = renderer.gaussians(frame, lod)
-                if track_splats:
-                    centres.append(gaussians[0].cpu().numpy())
-                    opacities.append(gaussians[3].cpu().numpy())
-                for cam, result, c in renderer.render(frame, lod, gaussians=gaussians):
-                    write_png(level_dir / cam / f"{frame:08d}.png", result.color[c].cpu().numpy())
-                    write_exr(level_dir / cam / f"{frame:08d}.exr",
-                              {"A": result.alpha[c, ..., 0].cpu().numpy(), "Z": result.depth[c, ..., 0].cpu().numpy()})
-                bar.update()
+            level_dir = work / f"lod{lod}"
             if track_splats:
-                order = np.argsort(frames)
-                SplatTrack(np.asarray(frames)[order], np.stack(centres)[order], np.stack(opacities)[order]).save(
-                    level_dir / SPLATS)
+                _join_track(level_dir, frames, chunks)
+            if (level_dir / "timing.json").is_file():
+                continue
             seconds = renderer.seconds_per_frame(frames, lod, cfg.timing_frames)
             write_json(level_dir / "timing.json", {
                 "splats": model.level_sizes[lod],
@@ -181,6 +232,33 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
                 "height": renderer.groups[0].height,
                 "fit_note": note,
             })
+        write_manifest(work, {"split": split, "cameras": cameras, "frames": frames, "levels": levels,
+                              "chunk_frames": cfg.chunk_frames, "codec": cfg.render_codec, "every_view": every_view,
+                              "checkpoint_sha256": settings["checkpoint_sha256"]})
+
+
+def _track_piece(level_dir: Path, first_frame: int) -> Path:
+    return level_dir / f".splats-{first_frame:08d}.npz"
+
+
+def _chunk_done(level_dir: Path, cameras: list[str], chunk: list[int], track_splats: bool) -> bool:
+    """Whether an earlier run wrote every camera's chunk of these frames (and the track's piece, or the whole
+    track) at this LOD. Chunks are written atomically: one present is complete."""
+    if not all(chunk_path(level_dir, cam, chunk[0]).is_file() for cam in cameras):
+        return False
+    return not track_splats or _track_piece(level_dir, chunk[0]).is_file() or (level_dir / SPLATS).is_file()
+
+
+def _join_track(level_dir: Path, frames: list[int], chunks: list[list[int]]) -> None:
+    """lod{l}/splats.npz, ascending frames, from the pieces of the chunks (removed once it is written)."""
+    if (level_dir / SPLATS).is_file():
+        return
+    pieces = [SplatTrack.load(_track_piece(level_dir, chunk[0])) for chunk in chunks]
+    order = np.argsort(frames)
+    SplatTrack(np.asarray(frames)[order], np.concatenate([p.centres for p in pieces])[order],
+               np.concatenate([p.opacities for p in pieces])[order]).save(level_dir / SPLATS)
+    for chunk in chunks:
+        _track_piece(level_dir, chunk[0]).unlink()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -196,11 +274,14 @@ def main(argv: list[str] | None = None) -> int:
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier render of a split")
+    parser.add_argument("--every-view", action="store_true", default=None,
+                        help="also write every view as PNG with alpha and depth in OpenEXR (evaluate.every_view)")
     args = parser.parse_args(argv)
     preset = load_preset(args.preset)
     cfg = load_section(preset, "evaluate", EvaluateConfig, {"device": args.device} if args.device else None)
     rasterizer = load_section(preset, "rasterizer", RasterizerConfig)
-    render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer, args.overwrite)
+    render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer, args.overwrite,
+                 args.every_view)
     return 0
 
 

@@ -88,7 +88,7 @@ def has_regions(summaries: pd.DataFrame) -> bool:
 
 
 def _notes(frame: pd.DataFrame) -> str:
-    notes = sorted({n for col in ("lpips_note", "fid_note", "fit_note") if col in frame for n in frame[col].dropna() if n})
+    notes = sorted({n for col in ("lpips_note", "fid_note", "fit_note", "protocol_note", "weights_note") if col in frame for n in frame[col].dropna() if n})
     return "; ".join(notes)
 
 
@@ -119,6 +119,20 @@ def lpips_column(summaries: pd.DataFrame) -> str:
         raise ValueError(f"summaries were scored with different LPIPS backbones ({examples}); evaluate every "
                          "subject and variant with one `evaluate.lpips_net`")
     return f"lpips_{nets.iloc[0]}"
+
+
+def protocol_suffix(summaries: pd.DataFrame) -> str:
+    """'' for this project's protocol (`ours`; summaries without the key were scored by it), else `_{protocol}`,
+    which the columns of the metrics a peer's protocol changes (SSIM, LPIPS, FID) carry. Mixed protocols are refused."""
+    names = summaries["protocol"].fillna("ours") if "protocol" in summaries else pd.Series("ours", index=summaries.index)
+    if names.nunique() > 1:
+        raise ValueError(f"summaries were scored by different protocols ({sorted(names.unique())}); evaluate every "
+                         "subject and variant with one `evaluate.protocol`")
+    return "" if names.iloc[0] == "ours" else f"_{names.iloc[0]}"
+
+
+def _metric_names(lpips: str, suffix: str) -> dict[str, str]:
+    return {"psnr": "psnr", "ssim": f"ssim{suffix}", "lpips": f"{lpips}{suffix}", "fid": f"fid{suffix}"}
 
 
 def finest_rows(summaries: pd.DataFrame) -> pd.DataFrame:
@@ -157,7 +171,8 @@ def main_table(summaries: pd.DataFrame, variants: list[str], blank: bool = True)
         rows.append(row)
     if blank:
         rows.append(_blank_row(finest_rows(summaries), regions))
-    return pd.DataFrame(rows).rename(columns={f"{split}_lpips": f"{split}_{lpips}" for split in SPLITS})
+    names = _metric_names(lpips, protocol_suffix(summaries))
+    return pd.DataFrame(rows).rename(columns={f"{split}_{m}": f"{split}_{names[m]}" for split in SPLITS for m in METRICS})
 
 
 def _blank_row(finest: pd.DataFrame, regions: tuple[str, ...]) -> dict:
@@ -218,7 +233,7 @@ def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_
                 "device": "; ".join(sorted(at["device"].unique())),
                 "notes": _notes(at),
             })
-    return pd.DataFrame(rows).rename(columns={"lpips": lpips})
+    return pd.DataFrame(rows).rename(columns=_metric_names(lpips, protocol_suffix(summaries)))
 
 
 def to_markdown(table: pd.DataFrame, title: str) -> str:

@@ -1,0 +1,191 @@
+"""Render storage (pig.data.render_store): lossless chunks, resume after a kill, the capture they were rendered for."""
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from pig._io import write_png
+from pig.data.capture import Capture
+from pig.data.capture_record import RECORD
+from pig.data.exr import read_exr
+from pig.data.images import read_png
+from pig.data.raw import CaptureError
+from pig.data.render_store import CODECS, ChunkEncoder, RenderReader, chunk_path, read_manifest
+from pig.render.api import RasterizerConfig
+from pig.stages import render as render_stage
+from pig.stages.evaluate import EvaluateConfig, evaluate_split
+from pig.stages.render import render_split
+
+SPLIT = "novel_view"  # 2 cameras x 3 frames in the small capture: chunks of 2 frames and 1
+
+
+def _textured(rng, frames: int, height: int = 37, width: int = 53) -> np.ndarray:
+    """Renders-like uint8 views: black background, a smooth body with noise on it."""
+    yy, xx = np.mgrid[:height, :width]
+    body = ((yy - height / 2) ** 2 / (height / 3) ** 2 + (xx - width / 2) ** 2 / (width / 4) ** 2) < 1
+    images = rng.integers(0, 256, (frames, height, width, 3)) * body[None, ..., None]
+    images[0, 0, 0] = 255  # the extremes survive
+    return images.astype(np.uint8)
+
+
+@pytest.mark.parametrize("codec", sorted(CODECS))
+def test_chunks_round_trip_exactly_and_read_like_per_view_pngs(codec, tmp_path, rng):
+    images = _textured(rng, 5)
+    frames = [3, 4, 7, 8, 11]
+    encoder = ChunkEncoder(codec, workers=2, pending=1, pending_views=1)  # both waits taken
+    for frame, image in zip(frames[:3], images[:3]):
+        encoder.add(chunk_path(tmp_path / "lod0", "cam00", 3), frame, image)
+    encoder.finish_chunk(chunk_path(tmp_path / "lod0", "cam00", 3))
+    for frame, image in zip(frames[3:], images[3:]):
+        encoder.add(chunk_path(tmp_path / "lod0", "cam00", 8), frame, image)
+    encoder.finish_chunk(chunk_path(tmp_path / "lod0", "cam00", 8))
+    written = encoder.close()
+    assert written == sum(p.stat().st_size for p in (tmp_path / "lod0" / "cam00").iterdir())
+    reader = RenderReader(tmp_path / "lod0")
+    for frame, image in zip(frames[::-1], images[::-1]):  # out of order: chunks are reopened
+        np.testing.assert_array_equal(reader.image_u8("cam00", frame), image)
+        # The float view equals what read_png gives for the same view written as a PNG.
+        write_png(tmp_path / "png" / f"{frame:08d}.png", image)
+        np.testing.assert_array_equal(reader.image("cam00", frame), read_png(tmp_path / "png" / f"{frame:08d}.png"))
+    assert not reader.has("cam00", 5) and not reader.has("cam01", 3)
+
+
+def test_quantisation_matches_the_png_writer(rng):
+    colour = torch.from_numpy(rng.random((9, 11, 3)) * 1.2 - 0.1).float()
+    colour[0, :4, 0] = torch.tensor([0.5 / 255, 1.5 / 255, 2.5 / 255, 254.5 / 255])  # ties round half to even
+    expected = np.round(np.clip(colour.numpy(), 0, 1) * 255).astype(np.uint8)  # write_png's rule
+    np.testing.assert_array_equal(render_stage._to_u8(colour), expected)
+
+
+def test_a_cut_short_or_foreign_chunk_is_refused_by_name(tmp_path, rng):
+    encoder = ChunkEncoder("png")
+    path = chunk_path(tmp_path, "cam00", 0)
+    for frame, image in enumerate(_textured(rng, 2)):
+        encoder.add(path, frame, image)
+    encoder.finish_chunk(path)
+    encoder.close()
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CaptureError, match=rf"{path}: not a readable .npz"):
+        RenderReader(tmp_path).image("cam00", 0)
+    np.savez(path, frames=np.arange(2))
+    with pytest.raises(CaptureError, match=rf"{path}: missing \['offsets', 'data', 'codec'\]"):
+        RenderReader(tmp_path).image("cam00", 0)
+
+
+@pytest.fixture(scope="module")
+def rendered(tiny_fit, tmp_path_factory):
+    """(capture, checkpoint, renders of SPLIT with --every-view) of the tiny fit."""
+    capture, checkpoint = tiny_fit
+    renders = tmp_path_factory.mktemp("store") / "renders" / SPLIT
+    cfg = EvaluateConfig(timing_frames=1, chunk_frames=2)
+    render_split(checkpoint, capture, SPLIT, renders, cfg, RasterizerConfig(backend="cpu"), every_view=True)
+    return capture, checkpoint, renders
+
+
+@pytest.mark.slow
+def test_every_view_pngs_and_exrs_match_the_chunks(rendered):
+    capture, _, renders = rendered
+    manifest = read_manifest(renders)
+    assert manifest["every_view"] and manifest["levels"] == [0, 1]
+    assert json.loads((renders / RECORD).read_text())["fingerprint"] == Capture.load(capture).fingerprint()
+    for level in manifest["levels"]:
+        reader = RenderReader(renders / f"lod{level}")
+        for cam in manifest["cameras"]:
+            assert len(list((renders / f"lod{level}" / cam).glob("*.npz"))) == -(-len(manifest["frames"]) // 2)
+            for frame in manifest["frames"]:
+                png = renders / f"lod{level}" / cam / f"{frame:08d}.png"
+                np.testing.assert_array_equal(reader.image(cam, frame), read_png(png))
+                exr = read_exr(png.with_suffix(".exr"))
+                assert set(exr) == {"A", "Z"} and exr["A"].shape == reader.image(cam, frame).shape[:2]
+
+
+@pytest.mark.slow
+def test_a_killed_render_resumes_with_only_the_missing_chunks(rendered, tmp_path, monkeypatch):
+    capture, checkpoint, reference = rendered
+    cfg = EvaluateConfig(timing_frames=1, chunk_frames=2, every_view=True)
+    renders = tmp_path / "renders" / SPLIT
+    frames = read_manifest(reference)["frames"]
+    calls = []
+    original = render_stage.SplitRenderer.gaussians
+
+    def counted(self, frame, lod):
+        calls.append((frame, lod))
+        if len(calls) == 2 * 2 + 1 and not getattr(counted, "killed", False):  # the second chunk's first frame
+            counted.killed = True
+            raise KeyboardInterrupt
+        return original(self, frame, lod)
+
+    monkeypatch.setattr(render_stage.SplitRenderer, "gaussians", counted)
+    with pytest.raises(KeyboardInterrupt):
+        render_split(checkpoint, capture, SPLIT, renders, cfg, RasterizerConfig(backend="cpu"))
+    assert not renders.exists()  # nothing half-made under the final name: evaluate cannot score it
+    partial = renders.with_name(f".{SPLIT}.partial")
+    assert sorted(p.name for p in (partial / "lod0" / read_manifest(reference)["cameras"][0]).glob("*.npz")) == [
+        f"{frames[0]:08d}.npz"]
+    calls.clear()
+    render_split(checkpoint, capture, SPLIT, renders, cfg, RasterizerConfig(backend="cpu"))
+    rendered_again = [call for call in calls if call[0] in frames[:2]]
+    timed = 2 * 2  # seconds_per_frame: one warm-up and one timed frame per LOD
+    assert len(calls) - timed == 2 * (len(frames) - 2) and len(rendered_again) <= timed
+    assert not partial.exists()
+    # The resumed render equals the uninterrupted one, view for view, and its splat track too.
+    for level in (0, 1):
+        for cam in read_manifest(reference)["cameras"]:
+            got, want = RenderReader(renders / f"lod{level}"), RenderReader(reference / f"lod{level}")
+            for frame in frames:
+                np.testing.assert_array_equal(got.image_u8(cam, frame), want.image_u8(cam, frame))
+        for key in ("frames", "centres", "opacities"):
+            with np.load(renders / f"lod{level}" / "splats.npz") as a, np.load(reference / f"lod{level}" / "splats.npz") as b:
+                np.testing.assert_array_equal(a[key], b[key])
+        assert not list((renders / f"lod{level}").glob(".splats-*"))
+
+
+@pytest.mark.slow
+def test_evaluate_refuses_renders_of_another_capture(rendered, tmp_path):
+    capture, _, renders = rendered
+    other = tmp_path / "capture"
+    shutil.copytree(capture, other)
+    cameras = json.loads((other / "cameras.json").read_text())
+    first = sorted(cameras)[0]
+    cameras[first]["K"][0][0] *= 1.01
+    (other / "cameras.json").write_text(json.dumps(cameras))
+    expected = f"{renders}: made from another capture ({capture.resolve()}) than {other}: their cameras differ"
+    with pytest.raises(CaptureError, match=re.escape(expected)):
+        evaluate_split(other, renders, SPLIT, tmp_path / "metrics", EvaluateConfig())
+    assert not (tmp_path / "metrics" / f"{SPLIT}_lod0.json").exists()
+
+
+def test_chunked_batched_evaluation_equals_per_image_scores_of_per_view_pngs(tmp_path, rng):
+    """50 views scored from chunks in batches of 16 (decoded on threads) against each view scored alone from its
+    PNG: PSNR within 1e-4 dB, SSIM within 1e-5, LPIPS (random stand-in weights) within 1e-5."""
+    from test_metrics import _tiny_capture
+
+    from pig.metrics.lpips import LPIPS
+    from pig.metrics.psnr import psnr
+    from pig.metrics.ssim import ssim
+    from pig.stages.evaluate import evaluate_level
+
+    capture_dir, renders = _tiny_capture(tmp_path, rng, frames=50)
+    encoder = ChunkEncoder("webp")
+    for frame in range(50):
+        path = chunk_path(tmp_path / "chunked" / "lod0", "cam00", frame // 16 * 16)
+        encoder.add(path, frame, np.round(read_png(renders / "lod0" / "cam00" / f"{frame:08d}.png") * 255).astype(np.uint8))
+        if frame % 16 == 15 or frame == 49:
+            encoder.finish_chunk(path)
+    encoder.close()
+    capture = Capture.load(capture_dir, cache_mb=0)
+    lpips = LPIPS("alex", weights="random")
+    table, _ = evaluate_level(capture, "novel_view", tmp_path / "chunked" / "lod0",
+                              EvaluateConfig(batch_size=16, encode_workers=2), lpips, None, torch.device("cpu"))
+    assert len(table) == 50
+    for row in table.itertuples():
+        render = torch.from_numpy(read_png(renders / "lod0" / "cam00" / f"{row.frame:08d}.png")).permute(2, 0, 1)[None]
+        truth = capture.image("cam00", row.frame) * capture.mask("cam00", row.frame)[..., None]
+        truth = torch.from_numpy(truth).permute(2, 0, 1)[None]
+        assert row.psnr == pytest.approx(float(psnr(render, truth)), abs=1e-4)
+        assert row.ssim == pytest.approx(float(ssim(render, truth)), abs=1e-5)
+        assert row.lpips == pytest.approx(float(lpips(render, truth)), abs=1e-5)
