@@ -7,6 +7,7 @@ hidden temporaries a kill leaves carry the writer's process id, so the next run 
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import math
 import os
@@ -204,3 +205,12 @@ def write_figure(path: str | Path, figure, dpi: float | None = None) -> None:
             figure.savefig(tmp, dpi=dpi)
     finally:
         plt.close(figure)
+
+
+def file_sha256(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -11,7 +11,6 @@ stage's splats (lod{l}/splats.npz; pig.metrics.geometry) in the summary. Real ca
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -39,7 +38,7 @@ from pig.metrics.weights import (INCEPTION_FILE, LPIPS_LINEAR_FILES, TORCHVISION
                                  lpips_package_weights)
 from pig.progress import progress_bar
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
-from pig._io import read_record, write_json, write_text
+from pig._io import file_sha256, read_record, write_json, write_text
 from pig._outputs import claim_files
 
 
@@ -104,15 +103,7 @@ def weights_note(cfg: EvaluateConfig, lpips_loaded: bool, inception_loaded: bool
         files.append(locate(INCEPTION_FILE, cfg.inception_weights, [], "FID Inception network"))
     if not files:
         return ""
-    return "scored with weights " + ", ".join(f"{path.name} (sha256 {_sha256(path)[:12]})" for path in files)
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    return "scored with weights " + ", ".join(f"{path.name} (sha256 {file_sha256(path)[:12]})" for path in files)
 
 
 REGION_KEYS = [f"{metric}_{region}" for metric in ("psnr", "ssim") for region in ("garment", "body", "background")]

@@ -15,7 +15,6 @@ work (nearest timestep, body, transport, decoders, rasterization) per LOD for th
 """
 from __future__ import annotations
 
-import hashlib
 import platform
 import time
 from dataclasses import asdict, dataclass
@@ -34,7 +33,7 @@ from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
-from pig._io import write_json, write_png
+from pig._io import file_sha256, write_json, write_png
 from pig._outputs import claim_dir, resumable_dir
 from pig.stages.evaluate import EvaluateConfig
 
@@ -138,14 +137,6 @@ class SplitRenderer:
         return float(np.mean(times))
 
 
-def _file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _to_u8(color: torch.Tensor) -> np.ndarray:
     """(H, W, 3) float in [0, 1] -> uint8, rounded as `write_png` rounds (half to even), on the render's device."""
     return (color.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
@@ -180,7 +171,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     levels = list(range(model.num_levels))
     chunks = [frames[i:i + cfg.chunk_frames] for i in range(0, len(frames), cfg.chunk_frames)]
     # Everything the chunks depend on: a rerun with any of it changed starts afresh.
-    settings = {"checkpoint_sha256": _file_sha256(checkpoint), "capture": capture.fingerprint(), "split": split,
+    settings = {"checkpoint_sha256": file_sha256(checkpoint), "capture": capture.fingerprint(), "split": split,
                 "codec": cfg.render_codec, "chunk_frames": cfg.chunk_frames, "every_view": every_view,
                 "rasterizer": asdict(rasterizer), "device": str(device)}
     with resumable_dir(output, "render", settings) as work, \
