@@ -32,7 +32,9 @@ def safe_name(value, what: str, where: str, error: type[ValueError] = UnsafeName
     elif len(value.encode("utf-8", "surrogateescape")) > NAME_MAX:
         problem = f"is longer than {NAME_MAX} bytes"
     if problem is not None:
-        shown = repr(value) if len(value) <= 80 else repr(value[:77]) + "..."
+        # A path is shown whole, so that the user finds it in the file; an over-long name by its start.
+        limit = 80 if len(value.encode("utf-8", "surrogateescape")) > NAME_MAX else 4 * NAME_MAX
+        shown = repr(value) if len(value) <= limit else repr(value[:limit - 3]) + "..."
         raise error(f"{where}: {what} {shown} {problem}; it becomes a file or folder name, so it must be "
                     "one plain path component (letters, digits, '_', '-', ...)")
     return value

@@ -164,5 +164,5 @@ def test_a_killed_run_resumes_without_redoing_finished_fits(recorded, tmp_path, 
     assert scheduled(work, "all_tables") == {"fit_avatar": 1, "render_split": 2, "evaluate": 4, "make_tables": 1,
                                              "all_tables": 1}
     output = snakemake_run(work, "all_tables", "--dry-run", "--printshellcmds")
-    fits = [line for line in output.splitlines() if "pig.stages.fit " in line]
+    fits = [line for line in output.splitlines() if " -m pig fit " in line]
     assert len(fits) == 1 and "--variant no_offsets" in fits[0]
