@@ -30,23 +30,6 @@ CHUNK_EXPECTED = ("a render chunk .npz with 'frames' (F,) int64, 'offsets' (F + 
                   "streams and 'codec'")
 
 
-def capture_record(fingerprint: dict) -> dict:
-    """The capture fingerprint (pig.data.capture.Capture.fingerprint) as stored in a manifest: JSON-clean."""
-    return json.loads(json.dumps(fingerprint, sort_keys=True))
-
-
-def check_capture(manifest: dict, fingerprint: dict, where: Path) -> None:
-    """CaptureError unless the renders described by `manifest` were rendered for the capture of `fingerprint`."""
-    recorded = manifest.get("capture_fingerprint")
-    if recorded is None:
-        raise CaptureError(f"{where}: records no capture_fingerprint; rerun render (e.g. `snakemake -R render_split`)")
-    current = capture_record(fingerprint)
-    differ = sorted(key for key in set(recorded) | set(current) if recorded.get(key) != current.get(key))
-    if differ:
-        raise CaptureError(f"{where}: the renders were made for another capture (its {', '.join(differ)} differ "
-                           "from this capture's); rerun render for this capture (e.g. `snakemake -R render_split`)")
-
-
 def read_manifest(split_dir: Path) -> dict | None:
     """The render stage's manifest of a split folder; None for a folder of per-view PNGs without one."""
     path = Path(split_dir) / MANIFEST
