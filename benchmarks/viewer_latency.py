@@ -32,7 +32,7 @@ import torch
 from pig.avatar.driver import AvatarDriver
 from pig.field.precondition import bake_preconditioning
 from pig.viewer.app import CPU_RENDER_HEIGHT, Viewer
-from pig.viewer.browser import HeadlessChromium
+from pig.viewer.browser import GL_FLAGS, HeadlessChromium
 from pig.viewer.splats import browser_splats
 from pig.viewer.timeline import Timeline
 
@@ -151,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--render-height", type=int, default=CPU_RENDER_HEIGHT,
                         help=f"--draw server: height of the rendered frames (default: {CPU_RENDER_HEIGHT}, the view "
                              "stage's on the CPU)")
+    parser.add_argument("--gl", choices=sorted(GL_FLAGS), default="swiftshader",
+                        help="the page's WebGL renderer: Chromium's SwiftShader or Mesa's llvmpipe")
     parser.add_argument("--screenshot", type=Path, help="save the page as this PNG")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -186,7 +188,8 @@ def main(argv: list[str] | None = None) -> int:
                 cv2.imencode(".jpg", rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, viewer.jpeg_quality])
                 encode_ms.append(1e3 * (time.perf_counter() - middle))
         latencies, arrivals, drawing = [], [], []
-        with HeadlessChromium(*args.size) as browser:
+        with HeadlessChromium(*args.size, gl=args.gl) as browser:
+            renderer = browser.webgl_renderer()
             browser.call("Page.enable")
             browser.call("Page.addScriptToEvaluateOnNewDocument", source=ARRIVALS)
             browser.goto(viewer.url + "/?fixedDpr=1")
@@ -231,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     load = open("/proc/loadavg").read().split()[0] if Path("/proc/loadavg").exists() else "?"
     drawn = "splats drawn in the browser" if args.draw == "browser" else f"frames of {width} x {height} from the server"
     print(f"splats {splats} (LOD {level}), page {args.size[0]} x {args.size[1]}, {drawn}, {args.threads} threads, "
-          f"load average {load}, {len(latencies)} pose changes")
+          f"load average {load}, {len(latencies)} pose changes\nWebGL: {renderer}")
     print("| part | median ms | min | max |\n|---|---|---|---|")
     parts = [("slider event -> changed pixels (page)", latencies),
              ("slider event -> splats or frame arrived (page)", arrivals),

@@ -341,3 +341,18 @@ def test_view_stage_names_a_missing_checkpoint(tmp_path, capsys):
     assert run_cli(main, ["--checkpoint", str(missing), "--port", str(free_port())]) == 1
     error = capsys.readouterr().err
     assert error.startswith("view: error: ") and str(missing) in error and "not found" in error
+
+
+@pytest.mark.skipif(_browser_skip_reason() is not None, reason=str(_browser_skip_reason()))
+@pytest.mark.parametrize("gl, name", [("swiftshader", "SwiftShader"), ("llvmpipe", "llvmpipe")])
+def test_headless_chromium_draws_webgl_on_the_chosen_renderer(gl, name):
+    from pathlib import Path
+
+    from pig.viewer.browser import HeadlessChromium
+
+    if gl == "llvmpipe" and not list(Path("/usr/lib").glob("*/dri/swrast_dri.so")):
+        pytest.skip("Mesa's llvmpipe is not installed (Debian: apt-get install libgl1-mesa-dri)")
+    with HeadlessChromium(160, 120, gl=gl) as browser:
+        assert name in browser.webgl_renderer()
+    with pytest.raises(ValueError, match="gl: expected one of"):
+        HeadlessChromium(gl="opengl")

@@ -1,8 +1,10 @@
 """A headless Chromium driven over the Chrome DevTools protocol: load a page, run script, press keys, take
 screenshots. What the viewer's browser test and its latency benchmark use; nothing here is downloaded.
 
-Chromium runs with a fresh profile, no sandbox (it runs as root in CI) and WebGL on SwiftShader, its CPU
-renderer (`--disable-gpu`: no GPU driver is used).
+Chromium runs with a fresh profile, no sandbox (it runs as root in CI) and WebGL in software: SwiftShader,
+Chromium's own CPU renderer (`--disable-gpu`: no GPU driver is used), or Mesa's llvmpipe through ANGLE's EGL backend
+where Debian's `libgl1-mesa-dri` is installed (what Firefox and Chromium told to ignore their GPU blocklist use on a
+Linux machine without a GPU; it draws viser's splats about twice as fast, benchmarks/NOTES.md).
 """
 from __future__ import annotations
 
@@ -19,9 +21,11 @@ import cv2
 import numpy as np
 
 EXECUTABLES = ("chromium", "chromium-browser", "google-chrome")
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars", "--mute-audio")
+FLAGS = ("--headless", "--no-sandbox", "--disable-quic", "--no-first-run", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync", "--hide-scrollbars", "--mute-audio")
+# WebGL's software renderer -> its flags.
+GL_FLAGS = {"swiftshader": ("--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"),
+            "llvmpipe": ("--use-gl=angle", "--use-angle=gl-egl", "--ignore-gpu-blocklist")}
 
 
 def find_chromium() -> str | None:
@@ -39,20 +43,23 @@ def _decode_png(data: str) -> np.ndarray:
 
 
 class HeadlessChromium:
-    """One headless browser with one page of `width` x `height` CSS pixels (device scale 1). Use as a context
-    manager, or call `close()`."""
+    """One headless browser with one page of `width` x `height` CSS pixels (device scale 1), WebGL on `gl` (a key of
+    GL_FLAGS). Use as a context manager, or call `close()`."""
 
-    def __init__(self, width: int = 800, height: int = 600, executable: str | None = None, timeout_s: float = 30.0):
+    def __init__(self, width: int = 800, height: int = 600, executable: str | None = None, timeout_s: float = 30.0,
+                 gl: str = "swiftshader"):
         from websockets.sync.client import connect
 
+        if gl not in GL_FLAGS:
+            raise ValueError(f"gl: expected one of {', '.join(GL_FLAGS)}, found {gl!r}")
         executable = executable or find_chromium()
         if executable is None:
             raise OSError(f"no Chromium found (looked for {', '.join(EXECUTABLES)}; Debian: apt-get install chromium)")
         self._profile = tempfile.TemporaryDirectory(prefix="pig-chromium-")
         profile = Path(self._profile.name)
         self._log = open(profile / "chromium.log", "wb")
-        self._process = subprocess.Popen([executable, *FLAGS, f"--user-data-dir={profile}", "--remote-debugging-port=0",
-                                          f"--window-size={width},{height}", "about:blank"],
+        self._process = subprocess.Popen([executable, *FLAGS, *GL_FLAGS[gl], f"--user-data-dir={profile}",
+                                          "--remote-debugging-port=0", f"--window-size={width},{height}", "about:blank"],
                                          stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT)
         self._next_id = 0
         try:
@@ -117,6 +124,13 @@ class HeadlessChromium:
         self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y)
         for kind in ("mousePressed", "mouseReleased"):
             self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+
+    def webgl_renderer(self) -> str:
+        """The renderer a WebGL2 context of the page reports (which software renderer drew), or "no WebGL2"."""
+        return self.evaluate(
+            "(() => { const gl = document.createElement('canvas').getContext('webgl2'); if (!gl) return 'no WebGL2';"
+            " const info = gl.getExtension('WEBGL_debug_renderer_info');"
+            " return gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER); })()")
 
     def screenshot(self) -> np.ndarray:
         """(H, W, 3) uint8 RGB of the page as shown."""
