@@ -25,6 +25,7 @@ include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/tables.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/animate.smk"
+include: "workflow/rules/weights.smk"
 
 
 check_preset_resources()
