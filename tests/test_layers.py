@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "pig"
-LAYERS = {"body": 1, "field": 1, "data": 1, "metrics": 1, "render": 1, "avatar": 2, "viewer": 3, "stages": 4, "cli": 5,
+LAYERS = {"body": 1, "field": 1, "data": 1, "metrics": 1, "render": 1, "avatar": 2, "viewer": 3, "stages": 4, "doctor": 4,
+          "cli": 5,
           "__main__": 5}
 
 

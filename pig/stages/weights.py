@@ -15,10 +15,9 @@ from pig._cli import add_common_arguments, run_cli, stage_parser
 
 def main(argv: list[str] | None = None) -> int:
     parser = stage_parser("weights", __doc__, "pig weights --fetch --only vgg16 lpips-vgg")
-    parser.epilog += ("\n  pig weights                       (list them: where each is looked up, present or missing, "
-                      "checksum)\n  snakemake --cores 1 fetch_weights (the workflow's rule: pig weights --fetch)")
-    parser.add_argument("--fetch", action="store_true", help="download the missing files (checksummed; nothing is "
-                                                             "replaced)")
+    parser.add_argument("--fetch", action="store_true",
+                        help="download the missing files (each SHA-256 checked; nothing is replaced); without it, only "
+                             "list them. The workflow's rule does the same: snakemake --cores 1 fetch_weights")
     parser.add_argument("--only", nargs="+", metavar="NAME",
                         help=f"these files only: {', '.join(f.name for f in WEIGHT_FILES)} (default: all)")
     parser.add_argument("--dest", type=Path, help="look up and fetch into this folder instead of the torch hub cache "
