@@ -33,6 +33,7 @@ check_preset_resources()
 
 onstart:
     refuse_gpu_jobs()
+    refuse_missing_loss_weights()
 
 
 rule all:

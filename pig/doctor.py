@@ -14,6 +14,7 @@ from __future__ import annotations
 import glob
 import importlib.metadata
 import importlib.util
+import json
 import os
 import re
 import shutil
@@ -285,8 +286,6 @@ def nominal_geometry(preset: dict[str, Any], dataset: dict[str, Any]) -> Geometr
     subjects = dataset.get("subjects") or []
     root = Path(dataset.get("root", "")) / str(subjects[0]) if subjects else None
     if dataset.get("format") == "thuman4" and root is not None and (root / "calibration.json").is_file():
-        import json
-
         calibration = json.loads((root / "calibration.json").read_text())
         cameras = {name: tuple(cam["imgSize"]) for name, cam in calibration.items()}
         first = root / "images" / next(iter(cameras))

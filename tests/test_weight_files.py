@@ -183,3 +183,25 @@ def test_pig_weights_lists_and_fetches(server, hub, monkeypatch, capsys):
     assert re.search(r"^good\s+good\.pth\s+missing\b", out, re.M) and "pig weights --fetch" in out
     assert main(["weights", "--fetch"]) == 0
     assert re.search(r"^good\s+good\.pth\s+ok\b.*" + re.escape(str(hub / "good.pth")), capsys.readouterr().out, re.M)
+
+
+def test_loss_defaults_are_the_fits(hub, monkeypatch):
+    """The torch-free reading of a preset's `fit` section sees FitConfig's defaults, and names what the term lacks."""
+    from dataclasses import fields
+
+    from pig.avatar.fit_config import FitConfig
+
+    defaults = {f.name: f.default for f in fields(FitConfig)}
+    assert wf.LOSS_DEFAULTS == {key: defaults[key] for key in wf.LOSS_DEFAULTS}
+    assert [line.split(":")[0] for line in wf.loss_weight_problems({})] == ["vgg16", "lpips-vgg"]
+    assert wf.loss_weight_problems({"weight_lpips": 0.0}) == []
+    assert wf.loss_weight_problems({"lpips_weights": "random"}) == []
+    content = b"stand-in"
+    table = [WeightFile(f.name, f.filename, f.url, hashlib.sha256(content).hexdigest(), 8, "test", "test",
+                        f.in_lpips_package) for f in wf.WEIGHT_FILES]
+    monkeypatch.setattr(wf, "WEIGHT_FILES", tuple(table))
+    hub.mkdir(parents=True)
+    (hub / "alexnet-owt-7be5be79.pth").write_bytes(content)
+    (hub / "alex.pth").write_bytes(b"other")
+    assert [line.split(":")[0] for line in wf.loss_weight_problems({"lpips_net": "alex"})] == ["lpips-alex"]
+    assert "checksum bad" in wf.loss_weight_problems({"lpips_net": "alex"})[0]

@@ -182,6 +182,25 @@ def fetch(entry: WeightFile, dest_dir: Path, opener: Callable = urllib.request.u
     return target
 
 
+# FitConfig's defaults of the keys that decide the fit's LPIPS term (pig.avatar.fit_config; a test holds them equal):
+# read from a preset's raw `fit` section here, where the workflow builds its DAG without torch.
+LOSS_DEFAULTS = {"weight_lpips": 2.0, "lpips_net": "vgg", "lpips_weights": "pretrained", "lpips_backbone_weights": None,
+                 "lpips_linear_weights": None}
+
+
+def loss_weight_problems(fit: dict) -> list[str]:
+    """One line per weight file that the fit's LPIPS term (Eq. 15) needs and lacks, missing or failing its checksum,
+    for a preset's `fit` section `fit` (a raw mapping, variant overrides applied); [] when the term is off (weight
+    0) or uses random weights, or has its files."""
+    cfg = {**LOSS_DEFAULTS, **{key: fit[key] for key in LOSS_DEFAULTS if key in fit}}
+    if cfg["weight_lpips"] <= 0 or cfg["lpips_weights"] != "pretrained" or cfg["lpips_net"] not in LPIPS_FILES:
+        return []
+    backbone, linear = LPIPS_FILES[cfg["lpips_net"]]
+    found = [status(by_name([backbone])[0], configured=cfg["lpips_backbone_weights"]),
+             status(by_name([linear])[0], configured=cfg["lpips_linear_weights"])]
+    return [f"{s.entry.name}: {s.verdict()}" for s in found if not s.ok and s.checksum != "unknown"]
+
+
 def status_table(statuses: list[Status]) -> str:
     """One line per file: its name, file name, state (ok, missing, bad, unknown), published size and where it
     is (or the places it was sought)."""
@@ -205,7 +224,7 @@ def check_and_fetch(names: Iterable[str] | None = None, fetch_missing: bool = Fa
     if fetch_missing:
         folder = Path(dest) if dest is not None else hub_checkpoints()
         for entry in entries:
-            if status(entry, dest).path is None:
+            if not any(path.is_file() for path in candidates(entry, dest)):
                 try:
                     report(f"weights: {entry.filename} ok, at {fetch(entry, folder, opener, report=report)}")
                 except FetchError as err:
