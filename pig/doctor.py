@@ -127,13 +127,13 @@ def loads(path: Path) -> str:
 
 
 def nvcc_version() -> tuple[Path | None, str | None]:
-    """(nvcc's path, its release such as '12.8') as torch's extension builder finds it: $CUDA_HOME or $CUDA_PATH,
-    else nvcc on PATH, else /usr/local/cuda; (None, None) without one."""
+    """(nvcc's path, its release such as '12.8') as torch's extension builder and gsplat find it: in $CUDA_HOME or
+    $CUDA_PATH, else on PATH, else in /usr/local/cuda; (None, None) without one."""
     home = os.environ.get("CUDA_HOME") or os.environ.get("CUDA_PATH")
-    candidates = [Path(home) / "bin" / "nvcc"] if home else []
     on_path = shutil.which("nvcc")
-    candidates += [Path(on_path)] if on_path else []
-    candidates.append(CUDA_DEFAULT / "bin" / "nvcc")
+    candidates = [Path(home) / "bin" / "nvcc"] if home else []
+    candidates += [Path(on_path)] if on_path else []  # gsplat calls `nvcc` on PATH where CUDA_HOME has none
+    candidates += [] if home else [CUDA_DEFAULT / "bin" / "nvcc"]
     path = next((p for p in candidates if p.is_file()), None)
     if path is None:
         return None, None
