@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from pig.progress import progress_bar
 from pig._io import _temporary, file_sha256
 
 
@@ -160,10 +161,12 @@ def fetch(entry: WeightFile, dest_dir: Path, opener: Callable = urllib.request.u
                 length = response.headers.get("Content-Length")
                 expected = int(length) if length is not None else entry.size
                 report(f"weights: fetching {entry.filename} ({_megabytes(expected)}) from {entry.url}")
-                for block in iter(lambda: response.read(CHUNK), b""):
-                    digest.update(block)
-                    out.write(block)
-                    received += len(block)
+                with progress_bar(total=expected, unit="B", unit_scale=True, desc=entry.name, leave=False) as bar:
+                    for block in iter(lambda: response.read(CHUNK), b""):
+                        digest.update(block)
+                        out.write(block)
+                        received += len(block)
+                        bar.update(len(block))
         except urllib.error.HTTPError as err:
             raise FetchError(f"{entry.filename}: HTTP {err.code} ({err.reason}) from {entry.url}") from None
         except (urllib.error.URLError, OSError, http.client.HTTPException) as err:  # refused, unreachable, cut off
