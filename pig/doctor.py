@@ -11,6 +11,7 @@ columns are n/a without them).
 """
 from __future__ import annotations
 
+import functools
 import glob
 import importlib.metadata
 import importlib.util
@@ -111,12 +112,17 @@ def jit_folder() -> Path | None:
 
 def loads(path: Path) -> str:
     """'' when the compiled extension at `path` loads (in a child process: a broken build can crash its loader),
-    else the loader's last error line."""
-    module = path.name.split(".")[0]
+    else the loader's last error line. Asked once per file and modification time (gsplat's and nvcc's checks)."""
+    return _loads(str(path), path.stat().st_mtime_ns)
+
+
+@functools.cache
+def _loads(path: str, mtime_ns: int) -> str:
+    module = Path(path).name.split(".")[0]
     code = ("import importlib.util, sys, torch; spec = importlib.util.spec_from_file_location(sys.argv[1], sys.argv[2]); "
             "spec.loader.exec_module(importlib.util.module_from_spec(spec))")
     try:
-        done = subprocess.run([sys.executable, "-c", code, module, str(path)], capture_output=True, text=True,
+        done = subprocess.run([sys.executable, "-c", code, module, path], capture_output=True, text=True,
                               timeout=LOAD_TIMEOUT_S)
     except subprocess.TimeoutExpired:
         return f"loading it took over {LOAD_TIMEOUT_S} s"
@@ -175,12 +181,12 @@ def check_nvcc(gpu: bool) -> Check:
     import torch
 
     nvcc, release = nvcc_version()
-    _, built = gsplat_extensions()
+    built = [path for path in gsplat_extensions()[1] if not loads(path)]
     if nvcc is None:
         if gpu and not built:
             return Check("nvcc", "missing", "not found (CUDA_HOME, PATH, /usr/local/cuda): gsplat compiles its CUDA "
                                             "code on its first GPU call and needs it; install the CUDA toolkit")
-        why = "gsplat's CUDA extension is built" if built else "this preset renders on the CPU"
+        why = "gsplat's CUDA extension is built and loads" if built else "this preset renders on the CPU"
         return Check("nvcc", "ok", f"not found; not needed: {why}")
     found = f"{nvcc}, release {release or 'unknown'}"
     if gpu and torch.version.cuda and release and release.split(".")[0] != torch.version.cuda.split(".")[0]:

@@ -117,6 +117,7 @@ def test_the_jit_build_is_found_where_torch_builds_it_and_a_broken_one_does_not_
     assert version == "1.5.3" and broken in built
     check = doctor.check_gsplat(gpu=True)
     assert check.verdict == "missing" and "does not load" in check.detail
+    assert doctor.check_nvcc(gpu=True).verdict == "missing"  # a build that does not load is rebuilt: nvcc needed
 
 
 def test_a_compiled_extension_that_loads_is_seen_to_load():
