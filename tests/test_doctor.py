@@ -227,3 +227,18 @@ def test_pig_doctor_runs_here_and_reports_what_is_missing(hub, capsys):
     assert status == 1 and re.search(r"^missing +body +thuman4", out, re.M)
     assert re.search(r"^missing +weights +vgg16 for the evaluation and fit's LPIPS loss", out, re.M)
     assert "missing for this preset and dataset:" in out.splitlines()[-1]
+
+
+def test_the_doctor_never_loads_gsplats_cuda_backend(tmp_path):
+    """gsplat.cuda._backend compiles the CUDA extension when it finds none; the doctor looks on disk instead."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys; from pig.cli import main; main(['doctor', '--preset', 'paper', '--results', sys.argv[1]]); "
+            "print('backend imported:', 'gsplat.cuda._backend' in sys.modules)")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "TORCH_HOME": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert done.stdout.splitlines()[-1] == "backend imported: False", done.stdout + done.stderr
+    assert re.search(r"^\S+ +gsplat ", done.stdout, re.M)
