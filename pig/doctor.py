@@ -119,7 +119,8 @@ def loads(path: Path) -> str:
 @functools.cache
 def _loads(path: str, mtime_ns: int) -> str:
     module = Path(path).name.split(".")[0]
-    code = ("import importlib.util, sys, torch; spec = importlib.util.spec_from_file_location(sys.argv[1], sys.argv[2]); "
+    code = ("import importlib.util, sys, torch; "
+            "spec = importlib.util.spec_from_file_location(sys.argv[1], sys.argv[2]); "
             "spec.loader.exec_module(importlib.util.module_from_spec(spec))")
     try:
         done = subprocess.run([sys.executable, "-c", code, module, path], capture_output=True, text=True,
@@ -203,8 +204,8 @@ def check_weights(preset: dict[str, Any]) -> list[Check]:
     evaluate = load_section(preset, "evaluate", EvaluateConfig)
     fit = load_section(preset, "fit", FitConfig)
     backbone, linear = LPIPS_FILES[evaluate.lpips_net]
-    rows = [(backbone, evaluate.lpips_backbone_weights, "evaluation"), (linear, evaluate.lpips_linear_weights, "evaluation"),
-            ("inception", evaluate.inception_weights, "evaluation")]
+    rows = [(backbone, evaluate.lpips_backbone_weights, "evaluation"),
+            (linear, evaluate.lpips_linear_weights, "evaluation"), ("inception", evaluate.inception_weights, "evaluation")]
     if fit.weight_lpips > 0 and fit.lpips_weights == "pretrained":
         backbone, linear = LPIPS_FILES[fit.lpips_net]
         rows += [(backbone, fit.lpips_backbone_weights, LOSS_USE), (linear, fit.lpips_linear_weights, LOSS_USE)]
@@ -221,7 +222,8 @@ def check_weights(preset: dict[str, Any]) -> list[Check]:
             verdict, consequence = "missing", "; the fit would leave its LPIPS term out"
         else:
             verdict, consequence = "warn", "; its columns would be n/a" if not needed else ""
-        checks.append(Check("weights", verdict, f"{name} for the {' and '.join(used_by)}: {found.verdict()}{consequence}"))
+        detail = f"{name} for the {' and '.join(used_by)}: {found.verdict()}{consequence}"
+        checks.append(Check("weights", verdict, detail))
     return checks
 
 
