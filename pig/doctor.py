@@ -205,7 +205,8 @@ def check_weights(preset: dict[str, Any]) -> list[Check]:
     fit = load_section(preset, "fit", FitConfig)
     backbone, linear = LPIPS_FILES[evaluate.lpips_net]
     rows = [(backbone, evaluate.lpips_backbone_weights, "evaluation"),
-            (linear, evaluate.lpips_linear_weights, "evaluation"), ("inception", evaluate.inception_weights, "evaluation")]
+            (linear, evaluate.lpips_linear_weights, "evaluation"),
+            ("inception", evaluate.inception_weights, "evaluation")]
     if fit.weight_lpips > 0 and fit.lpips_weights == "pretrained":
         backbone, linear = LPIPS_FILES[fit.lpips_net]
         rows += [(backbone, fit.lpips_backbone_weights, LOSS_USE), (linear, fit.lpips_linear_weights, LOSS_USE)]
