@@ -36,7 +36,8 @@ TORCHVISION = "https://download.pytorch.org/models/"
 LPIPS_REPO = "https://raw.githubusercontent.com/richzhang/PerceptualSimilarity/master/lpips/weights/v0.1/"
 # The SHA-256s: torchvision's file names carry their first 8 hex digits (its hub download checks that prefix); the
 # full values and sizes agree across many public manifests that pin these files. The lpips linear layers' were
-# computed here from the files in richzhang/PerceptualSimilarity (commit 082bb24f, master, December 2023).
+# computed here from the files in richzhang/PerceptualSimilarity (commit 082bb24f, master, December 2023) and in
+# PyPI's lpips-0.1.4 wheel: the same bytes.
 WEIGHT_FILES = (
     WeightFile("alexnet", "alexnet-owt-7be5be79.pth", TORCHVISION + "alexnet-owt-7be5be79.pth",
                "7be5be791159472b1fbf3c69796f7cb30dca7ad8466c2df70058c37116cdee02", 244_408_911,
@@ -48,11 +49,11 @@ WEIGHT_FILES = (
                "LPIPS vgg backbone (evaluation and the fit's LPIPS loss, paper preset)"),
     WeightFile("lpips-alex", "alex.pth", LPIPS_REPO + "alex.pth",
                "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0", 6_009,
-               "richzhang/PerceptualSimilarity lpips/weights/v0.1/alex.pth (lpips 0.1.4), hashed from the file",
+               "richzhang/PerceptualSimilarity lpips/weights/v0.1/alex.pth and the lpips 0.1.4 wheel, hashed",
                "LPIPS alex linear layers", in_lpips_package=True),
     WeightFile("lpips-vgg", "vgg.pth", LPIPS_REPO + "vgg.pth",
                "a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868", 7_289,
-               "richzhang/PerceptualSimilarity lpips/weights/v0.1/vgg.pth (lpips 0.1.4), hashed from the file",
+               "richzhang/PerceptualSimilarity lpips/weights/v0.1/vgg.pth and the lpips 0.1.4 wheel, hashed",
                "LPIPS vgg linear layers (evaluation and the fit's LPIPS loss, paper preset)", in_lpips_package=True),
     WeightFile("inception", "inception-2015-12-05.pt",
                "https://nvlabs-fi-cdn.nvidia.com/stylegan2-ada-pytorch/pretrained/metrics/inception-2015-12-05.pt",
