@@ -50,7 +50,7 @@ WEIGHT_FILES = (
     WeightFile("lpips-alex", "alex.pth", LPIPS_REPO + "alex.pth",
                "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0", 6_009,
                "richzhang/PerceptualSimilarity lpips/weights/v0.1/alex.pth and the lpips 0.1.4 wheel, hashed",
-               "LPIPS alex linear layers", in_lpips_package=True),
+               "LPIPS alex linear layers (evaluation, cpu-demo and test presets)", in_lpips_package=True),
     WeightFile("lpips-vgg", "vgg.pth", LPIPS_REPO + "vgg.pth",
                "a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868", 7_289,
                "richzhang/PerceptualSimilarity lpips/weights/v0.1/vgg.pth and the lpips 0.1.4 wheel, hashed",
@@ -161,7 +161,8 @@ def fetch(entry: WeightFile, dest_dir: Path, opener: Callable = urllib.request.u
             with opener(entry.url, timeout=timeout) as response, open(tmp, "wb") as out:
                 length = response.headers.get("Content-Length")
                 expected = int(length) if length is not None else entry.size
-                report(f"weights: fetching {entry.filename} ({_megabytes(expected)}) from {entry.url}")
+                report(f"weights: fetching {entry.filename} ({_megabytes(expected)}) from {entry.url}; its SHA-256 "
+                       f"from {entry.source}")
                 with progress_bar(total=expected, unit="B", unit_scale=True, desc=entry.name, leave=False) as bar:
                     for block in iter(lambda: response.read(CHUNK), b""):
                         digest.update(block)
@@ -206,15 +207,17 @@ def loss_weight_problems(fit: dict) -> list[str]:
 
 
 def status_table(statuses: list[Status]) -> str:
-    """One line per file: its name, file name, state (ok, missing, bad, unknown), published size and where it
-    is (or the places it was sought)."""
+    """Two lines per file: its name, file name, state (ok, missing, bad, unknown), published size and where it is
+    (or the places it was sought); then what uses it."""
     rows = [("name", "file", "state", "size", "where")]
     for s in statuses:
         state = "missing" if s.path is None else s.checksum
         where = str(s.path) if s.path is not None else "not in " + ", ".join(map(str, s.searched))
         rows.append((s.entry.name, s.entry.filename, state, _megabytes(s.entry.size), where))
+        rows.append(("", "", "", "", f"used by: {s.entry.used_by}"))
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
-    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4] for row in rows)
+    return "\n".join(("  ".join(cell.ljust(w) for cell, w in zip(row[:4], widths)) + "  " + row[4]).rstrip()
+                     for row in rows)
 
 
 def check_and_fetch(names: Iterable[str] | None = None, fetch_missing: bool = False, dest: Path | None = None,
