@@ -54,3 +54,11 @@ def test_missing_or_corrupt_loss_weights_refuse_the_run(lpips_workflow, tmp_path
     code, output = fit_once(lpips_workflow)
     assert "LPIPS term of Eq. 15" not in output
     assert (lpips_workflow / FIT_LOG).read_text() != ""  # the fit ran (and failed on the fake capture)
+
+
+def test_fetch_weights_runs_only_when_named(recorded):
+    from test_workflow import snakemake_run
+
+    output = snakemake_run(recorded, "fetch_weights", "--dry-run", "--printshellcmds")
+    assert "python -m pig.stages.weights --fetch 2>&1 | tee results/logs/fetch_weights.log" in output
+    assert scheduled(recorded) == {}  # not part of the tables' target
