@@ -27,7 +27,7 @@ from typing import Any
 
 from pig.avatar.config import AvatarConfig
 from pig.avatar.fit_config import FitConfig
-from pig.config import ConfigError, from_dict, load_section, load_yaml, named_config
+from pig.config import ConfigError, config_dirs, from_dict, load_section, load_yaml, named_config
 from pig.data.rectify import output_size
 from pig.data.splits import SplitConfig, make_split
 from pig.data.synthetic.config import SyntheticConfig
@@ -237,7 +237,7 @@ def check_body_model(preset: dict[str, Any], dataset: dict[str, Any], source: st
         configured = load_section(preset, "synthetic", SyntheticConfig).body_model
         if configured is None:
             return Check("body", "ok", f"{dataset.get('name')}: the procedural stand-in, no SMPL-X file needed "
-                                       "(real captures, thuman4 and dna, need one)")
+                                       f"(the real captures need one: {', '.join(real_datasets()) or 'none named'})")
         if Path(configured).is_file():
             return Check("body", "ok", f"{dataset.get('name')}: SMPL-X model {configured} (synthetic.body_model)")
         return Check("body", "missing", f"synthetic.body_model {configured} does not exist; unset it for the "
@@ -249,6 +249,12 @@ def check_body_model(preset: dict[str, Any], dataset: dict[str, Any], source: st
     return Check("body", "missing", f"{dataset.get('name')}: `body_model` in {source} must name the SMPL-X model file "
                                     f"({found}); download SMPLX_NEUTRAL.npz (licensed, smpl-x.is.tue.mpg.de), put it "
                                     "e.g. at data/body_models/SMPLX_NEUTRAL.npz and set `body_model:` to that path")
+
+
+def real_datasets() -> list[str]:
+    """The datasets named in config/datasets/ that are real captures (not generated), which need an SMPL-X file."""
+    names = {path.stem for folder in config_dirs("datasets") for path in folder.glob("*.yaml")}
+    return sorted(name for name in names if not load_yaml(named_config("datasets", name)).get("generated", False))
 
 
 # --- disk --------------------------------------------------------------------------------------------------------

@@ -171,7 +171,8 @@ def test_configured_weight_paths_are_the_ones_checked(hub, monkeypatch, tmp_path
 def test_body_model(tmp_path):
     cpu = load_preset("cpu-demo")
     synthetic, source = doctor.load_dataset("synthetic")
-    assert doctor.check_body_model(cpu, synthetic, source).verdict == "ok"
+    check = doctor.check_body_model(cpu, synthetic, source)
+    assert check.verdict == "ok" and "the real captures need one: dna, thuman4" in check.detail
     thuman4, source = doctor.load_dataset("thuman4")
     check = doctor.check_body_model(cpu, thuman4, source)
     assert check.verdict == "missing" and "SMPLX_NEUTRAL.npz" in check.detail and "not set" in check.detail
