@@ -402,7 +402,7 @@ def check_disk(preset: dict[str, Any], dataset: dict[str, Any], results: Path) -
 
 
 def gb(size: float) -> str:
-    return f"{size / 1e9:,.1f} GB" if size >= 1e8 else f"{size / 1e6:,.1f} MB"
+    return f"{size / 1e9:,.1f} GB" if size >= 1e9 else f"{size / 1e6:,.1f} MB"
 
 
 # --- all of it ---------------------------------------------------------------------------------------------------
