@@ -301,10 +301,13 @@ def nominal_geometry(preset: dict[str, Any], dataset: dict[str, Any]) -> Geometr
     subjects = dataset.get("subjects") or []
     root = Path(dataset.get("root", "")) / str(subjects[0]) if subjects else None
     if dataset.get("format") == "thuman4" and root is not None and (root / "calibration.json").is_file():
-        calibration = json.loads((root / "calibration.json").read_text())
-        cameras = {name: tuple(cam["imgSize"]) for name, cam in calibration.items()}
-        first = root / "images" / next(iter(cameras))
-        frames = sorted(int(p.stem) for p in first.glob("*.jpg")) if first.is_dir() else []
+        try:  # a file the reader would refuse gives no sizes here; preprocess names what is wrong with it
+            calibration = json.loads((root / "calibration.json").read_text())
+            cameras = {name: (int(cam["imgSize"][0]), int(cam["imgSize"][1])) for name, cam in calibration.items()}
+            first = root / "images" / next(iter(cameras))
+            frames = sorted(int(p.stem) for p in first.glob("*.jpg")) if first.is_dir() else []
+        except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError, StopIteration):
+            frames = []
         if frames:
             return Geometry(cameras, frames, f"{root}'s calibration and images")
     if dataset.get("name") == "thuman4":
