@@ -25,6 +25,7 @@ include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/tables.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/animate.smk"
+include: "workflow/rules/weights.smk"
 
 
 check_preset_resources()
@@ -32,6 +33,7 @@ check_preset_resources()
 
 onstart:
     refuse_gpu_jobs()
+    refuse_missing_loss_weights()
 
 
 rule all:

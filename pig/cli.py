@@ -13,7 +13,8 @@ import sys
 from pathlib import Path
 
 # In pipeline order; `view` is the browser viewer (pig.stages.view).
-STAGES = ("generate", "preprocess", "fit", "render", "evaluate", "tables", "montage", "animate", "export", "view", "plan")
+STAGES = ("generate", "preprocess", "fit", "render", "evaluate", "tables", "montage", "animate", "export", "view", "plan",
+          "weights", "doctor")
 USAGE = "usage: pig STAGE [OPTIONS]   (pig STAGE --help: the stage's options and an example)"
 
 

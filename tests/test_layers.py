@@ -1,9 +1,9 @@
 """The package's layers import downward only, and no modules import each other in a circle.
 
 Layers, bottom up (DESIGN.md, house style): the top-level helper modules (pig.config, pig._io, pig._outputs,
-pig._cli, pig.progress, ...); body, field, data, metrics, render; avatar; the browser viewer (pig.viewer); stages; the `pig` command (pig.cli,
-pig.__main__). Every import counts, at module level or inside a function, read from the source by `ast` (no
-module is imported here).
+pig._cli, pig.progress, ...); body, field, data, metrics, render; avatar; the browser viewer (pig.viewer); stages
+and pig.doctor (which checks what they need); the `pig` command (pig.cli, pig.__main__). Every import counts, at
+module level or inside a function, read from the source by `ast` (no module is imported here).
 """
 import ast
 from pathlib import Path
@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "pig"
-LAYERS = {"body": 1, "field": 1, "data": 1, "metrics": 1, "render": 1, "avatar": 2, "viewer": 3, "stages": 4, "cli": 5,
-          "__main__": 5}
+LAYERS = {"body": 1, "field": 1, "data": 1, "metrics": 1, "render": 1, "avatar": 2, "viewer": 3, "stages": 4, "doctor": 4,
+          "cli": 5, "__main__": 5}
 
 
 def modules() -> dict[str, Path]:

@@ -1,4 +1,5 @@
-"""Where the pretrained metric networks' weights are looked up on disk; nothing is downloaded.
+"""Where the pretrained metric networks' weights are looked up on disk; nothing is downloaded here (`pig weights
+--fetch`, pig.metrics.weight_files, is the one explicit, checksummed fetch).
 
 Search order per file: a configured path, the torch hub cache ($TORCH_HOME/hub/checkpoints, by
 default ~/.cache/torch/hub/checkpoints), then the lpips package's folder for its linear layers; never a folder
@@ -46,7 +47,8 @@ def locate(filename: str, configured: str | Path | None, extra_dirs: list[Path |
         if path.is_file():
             return path
     searched = ", ".join(str(p) for p in candidates)
-    raise WeightsMissing(f"{what}: weights file {filename} not found (searched {searched}); place it there or configure its path")
+    raise WeightsMissing(f"{what}: weights file {filename} not found (searched {searched}); place it there "
+                         "(`pig weights --fetch`) or configure its path")
 
 
 def load_state_dict(path: Path) -> dict[str, torch.Tensor]:

@@ -21,6 +21,7 @@ from pig.data.formats import capture_format
 from pig.data.raw import CaptureError
 from pig.data.synthetic.config import SyntheticConfig
 from pig.gpu_slots import LOCAL_SLOTS_ENV, machine_devices
+from pig.metrics.weight_files import FETCH_COMMAND, loss_weight_problems
 from pig.names import safe_name
 from pig.resources import check_rule_names, rule_resources
 
@@ -133,6 +134,27 @@ def refuse_gpu_jobs():
             f"the compute preset {config['preset']!r} ({preset()['_path']}) gives rules {', '.join(rules)} a GPU and "
             f"this machine has none ({source}); nothing was run. Use a preset without GPU jobs "
             "(e.g. --config preset=cpu-demo) or run on a machine with GPUs"
+        )
+
+
+def refuse_missing_loss_weights():
+    """Before a run starts any fit: refuses it at once when a fit's LPIPS term (Eq. 15, the paper preset's) needs
+    pretrained weights that are missing or fail their checksum, naming the command that fetches them, instead of
+    fitting for hours without the term."""
+    if workflow.touch:
+        return
+    variants = sorted({job.wildcards.variant for job in workflow.dag.needrun_jobs() if job.rule.name == "fit_avatar"})
+    problems = {}
+    for variant in variants:
+        fit = {**(preset().get("fit") or {}), **variant_overrides(preset(), variant).get("fit", {})}
+        for problem in loss_weight_problems(fit):
+            problems.setdefault(problem, []).append(variant)
+    if problems:
+        lines = "; ".join(f"{problem} (variants {', '.join(names)})" for problem, names in problems.items())
+        raise WorkflowError(
+            f"the compute preset {config['preset']!r} ({preset()['_path']}) fits with the LPIPS term of Eq. 15, whose "
+            f"weights are not usable: {lines}. Nothing was run. Fetch them with `{FETCH_COMMAND}` (or "
+            "`snakemake --cores 1 fetch_weights`), or set fit.weight_lpips: 0 for a fit without the term"
         )
 
 
