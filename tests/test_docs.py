@@ -28,7 +28,7 @@ DEFAULT_RUN_CSV = REPO / "docs" / "default_run_synthetic.csv"
 # The paper's Table 1: per split PSNR, SSIM, LPIPS, FID (LPIPS named with its backbone, as the tables stage does).
 PAPER_METRIC = re.compile(r"^(novel_view|novel_pose)_(psnr|ssim|lpips_[a-z]+|fid)$")
 DECIMALS = {"psnr": 2, "ssim": 3, "lpips": 3, "fid": 1}
-FOOTNOTE_MARKS = "¹²³⁴⁵⁶⁷⁸⁹⁰"
+FOOTNOTE_MARKS = "¹²³⁴⁵⁶⁷⁸⁹⁰˒"  # superscript numbers, joined by ˒ as the tables stage marks notes
 
 
 def first_screen() -> list[str]:
@@ -59,9 +59,9 @@ def table_rows(lines: list[str]) -> list[list[str]]:
 
 
 def column_key(header: str) -> str:
-    """`Novel view LPIPS (Alex) ↓` -> `novel_view_lpips_alex`: the CSV column a README header cell names."""
+    """`Novel views LPIPS↓ (alex)` -> `novel_view_lpips_alex`: the CSV column a README header cell names."""
     words = re.sub(r"[↑↓()]", " ", header).lower().split()
-    return "_".join(words)
+    return "_".join(word.removesuffix("s") if word in ("views", "poses") else word for word in words)
 
 
 def without_marks(cell: str) -> str:
