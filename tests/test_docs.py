@@ -8,10 +8,11 @@ docs/*.md reaches an existing file and, for a Markdown file, an existing heading
 """
 from __future__ import annotations
 
+import argparse
 import ast
 import csv
 import glob
-import importlib.util
+import importlib
 import math
 import re
 import tomllib
@@ -236,7 +237,67 @@ def test_named_paths_and_modules_exist(page):
     assert not missing, f"{page.relative_to(REPO)} names what the repository does not have: {missing}"
 
 
-def test_checks_find_what_is_wrong(tmp_path):
+def commands(page: Path) -> list[list[str]]:
+    """The command lines in a page's code (spans and indented blocks; a block's indented or `\\`-ended lines
+    continue the line above), split at `&&`, ` | ` and `;`, each as its words."""
+    text = re.sub(r"^```.*?^```", "", page.read_text(encoding="utf-8"), flags=re.M | re.S)
+    lines = text.splitlines()
+    code = [span.replace("\n", " ") for span in re.findall(r"`([^`]+)`", prose_without_blocks(lines))]
+    for block in code_blocks(lines):
+        code.append(re.sub(r"\\?\n(?=\s)|\\\n", " ", "\n".join(block)))
+    # A pipe between spaces separates commands; one inside a word is a choice (`--device auto|cpu`).
+    return [part.split() for chunk in code for part in re.split(r"&&|\s\|\|?\s|;|\n", chunk)]
+
+
+def prose_without_blocks(lines: list[str]) -> str:
+    return "\n".join(line for line in lines if not line.startswith("    "))
+
+
+class _Parsed(Exception):
+    """Raised in place of parsing: carries the stage's parser out of its `main`."""
+
+    def __init__(self, parser: argparse.ArgumentParser):
+        super().__init__(parser.prog)
+        self.parser = parser
+
+
+def stage_options(stage: str, monkeypatch) -> set[str]:
+    """The option strings `pig STAGE` accepts, from the parser its `main` builds (nothing runs past parsing)."""
+    module = importlib.import_module(f"pig.stages.{stage}")
+
+    def capture(self, *args, **kwargs):
+        raise _Parsed(self)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(argparse.ArgumentParser, "parse_args", capture)
+        with pytest.raises(_Parsed) as parsed:
+            module.main([])
+    return {option for action in parsed.value.parser._actions for option in action.option_strings}
+
+
+def test_documented_stage_options_exist(monkeypatch):
+    """Every `pig STAGE --option` written in README.md or docs/ is an option of that stage (the stages of this
+    checkout's `pig` command; pig.cli.STAGES)."""
+    from pig.cli import STAGES
+
+    used: dict[str, dict[str, set[str]]] = {}
+    for page in PAGES:
+        for words in commands(page):
+            for index, word in enumerate(words[:-1]):
+                if word == "pig" and words[index + 1] in STAGES:
+                    options = {m for w in words[index + 2:] for m in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", w)}
+                    used.setdefault(words[index + 1], {}).setdefault(str(page.relative_to(REPO)), set()).update(options)
+    assert {"fit", "render", "evaluate", "view", "animate", "export"} <= used.keys(), sorted(used)
+    unknown = {}
+    for stage, pages in sorted(used.items()):
+        accepted = stage_options(stage, monkeypatch)
+        for page, options in pages.items():
+            if options - accepted:
+                unknown[f"{page}: pig {stage}"] = sorted(options - accepted)
+    assert not unknown, f"options that the stages do not have: {unknown}"
+
+
+def test_checks_find_what_is_wrong(tmp_path, monkeypatch):
     """The checkers themselves: a dead link, a missing anchor, a missing path and module are reported."""
     page = tmp_path / "page.md"
     page.write_text("# A heading: `with code`\n\n[ok](#a-heading-with-code) [dead](nowhere.md) [bad](#none)\n"
@@ -248,3 +309,10 @@ def test_checks_find_what_is_wrong(tmp_path):
     assert not pig_name_exists("pig.config.no_such_name") and not pig_name_exists("pig.no_such_module")
     assert github_slug("Bit-identical CPU fits: the kernel that raced, and its fix (CPU, 2026-11-25)") == (
         "bit-identical-cpu-fits-the-kernel-that-raced-and-its-fix-cpu-2026-11-25")
+    page.write_text("Run `pig fit --capture C\n--output O --device cpu|cuda --no-such-flag` and:\n\n"
+                    "    pig montage --views 3 \\\n        --split x && pig tables --dataset d | tee log\n", encoding="utf-8")
+    assert [w for w in commands(page) if w[:1] == ["pig"]] == [
+        ["pig", "fit", "--capture", "C", "--output", "O", "--device", "cpu|cuda", "--no-such-flag"],
+        ["pig", "montage", "--views", "3", "--split", "x"], ["pig", "tables", "--dataset", "d"]]
+    assert {"--capture", "--output", "--preset"} <= stage_options("fit", monkeypatch)
+    assert "--no-such-flag" not in stage_options("fit", monkeypatch)
