@@ -140,8 +140,8 @@ def test_workflow_end_to_end(tmp_path):
         reader = RenderReader(renders / split / "lod0")
         assert all(reader.has(cam, int(frame)) for cam in split_json[split]["cameras"] for frame in split_json[split]["frames"])
 
-    # The report: the workflow's description, the tables in their captions, the training plot and a montage of
-    # each split, each embedded.
+    # The report: the workflow's description, the tables as HTML pages (their numbers rounded from the CSV), the
+    # training plot, the fit's loss curve, a montage of each split and the turntable's page, each embedded.
     montages = [f"results/synthetic/subject00/pig/montage/{split}.png" for split in ("novel_view", "novel_pose")]
     for montage in montages:
         assert (work / montage).stat().st_size > 10_000
@@ -152,9 +152,13 @@ def test_workflow_end_to_end(tmp_path):
     assert "compute preset <tt" in html and "dir/pipeline preset.yaml</tt>" in html
     with open(tables / "synthetic.csv") as table:
         pig_row = next(row for row in csv.DictReader(table) if row["variant"] == "pig")
-    assert f"<td>{pig_row['novel_view_psnr']}</td>" in html  # the main table, as a table in its caption
-    assert "<th class=\\\"head\\\">lod</th>" in html  # the LOD table
+    page = (tables / "synthetic.html").read_text()
+    assert f">{float(pig_row['novel_view_psnr']):.2f}<" in page  # 2 decimals (ties aside: tests/test_table_format.py)
     assert "System Message" not in html  # docutils' notice of a broken caption
-    for path in ["results/tables/synthetic_training.png", *montages]:
+    pages = ["results/tables/synthetic.html", "results/tables/synthetic_lod.html", "results/tables/synthetic_regions.html",
+             "results/synthetic/subject00/pig/animate/preview.html"]
+    pictures = ["results/tables/synthetic_training.png", "results/synthetic/subject00/pig/train_log.png", *montages]
+    for path in [*pages, *pictures]:
         assert html.count(f'"{path}"') >= 1, path
-    assert html.count('"mime_type": "image/png"') == 3
+    assert html.count('"mime_type": "image/png"') == len(pictures)
+    assert html.count('"mime_type": "text/html"') == len(pages)

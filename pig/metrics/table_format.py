@@ -155,8 +155,7 @@ th { font-weight: 600; border-bottom: 1px solid #94a3b8; }
 thead tr.groups th { border-bottom: 1px solid #cbd5e1; }
 td.num { text-align: right; }
 th.group + th.group, td.first-of-group, th.first-of-group { border-left: 1px solid #cbd5e1; }
-th:first-child, td:first-child { position: sticky; left: 0; z-index: 1; text-align: left;
-  border-right: 1px solid #94a3b8; }
+th.first, td.first { position: sticky; left: 0; z-index: 1; text-align: left; border-right: 1px solid #94a3b8; }
 tbody tr:hover td { background: #f1f5f9; }
 sup { color: #64748b; }
 ol.notes { color: #475569; margin: 12px 0 0; padding-left: 24px; max-width: 60em; }
@@ -168,7 +167,8 @@ def to_html(table: pd.DataFrame, title: str, caption: str = "") -> str:
     a fixed first column when the table scrolls sideways, numbers right-aligned, footnotes as a numbered list."""
     formatted = format_table(table)
     grouped = any(group for group, _ in formatted.headers)
-    starts = {i for i, (group, _) in enumerate(formatted.headers) if group and (i == 0 or formatted.headers[i - 1][0] != group)}
+    # Columns that open a group (or leave one) get a rule on their left.
+    starts = {i for i in range(2, len(formatted.headers)) if formatted.headers[i - 1][0] != formatted.headers[i][0]}
     head = []
     if grouped:
         cells, index = [], 0
@@ -180,17 +180,18 @@ def to_html(table: pd.DataFrame, title: str, caption: str = "") -> str:
             if group:
                 cells.append(f'<th class="group" colspan="{span}">{html.escape(group)}</th>')
             else:
-                cells.append(f'<th rowspan="2">{html.escape(formatted.headers[index][1])}</th>')
+                classes = " ".join(c for c in ("first" if index == 0 else "", "first-of-group" if index in starts else "") if c)
+                cells.append(f'<th class="{classes}" rowspan="2">{html.escape(formatted.headers[index][1])}</th>')
             index += span
         head.append('<tr class="groups">' + "".join(cells) + "</tr>")
-    labels = [f'<th class="{"first-of-group" if i in starts else ""}">{html.escape(label)}</th>'
+    labels = [f'<th class="{"first" if i == 0 else "first-of-group" if i in starts else ""}">{html.escape(label)}</th>'
               for i, (group, label) in enumerate(formatted.headers) if group or not grouped]
     head.append("<tr>" + "".join(labels) + "</tr>")
     body = []
     for row in formatted.rows:
         cells = []
         for i, (text, marks) in enumerate(row):
-            classes = " ".join(c for c in ("num" if i and formatted.kinds[i] != "text" else "",
+            classes = " ".join(c for c in ("first" if i == 0 else "", "num" if i and formatted.kinds[i] != "text" else "",
                                            "first-of-group" if i in starts else "") if c)
             sup = f"<sup>{','.join(map(str, marks))}</sup>" if marks else ""
             cells.append(f'<td class="{classes}">{html.escape(text)}{sup}</td>')

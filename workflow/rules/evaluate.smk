@@ -92,7 +92,8 @@ rule make_tables:
             "results/tables/{dataset}_training.png",
             caption="../report/training.rst",
             category="Training",
-            labels={"dataset": "{dataset}", "figure": "held-out PSNR against time"},
+            subcategory="Held-out PSNR against time",
+            labels={"dataset": "{dataset}"},
         ),
     log:
         "results/tables/logs/{dataset}.log",
