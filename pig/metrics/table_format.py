@@ -206,9 +206,10 @@ def to_html(table: pd.DataFrame, title: str, caption: str = "") -> str:
 
 
 def read_table(path: Path) -> pd.DataFrame:
-    """A table CSV of the tables stage, read back at full precision (`round_trip`); text columns stay text."""
+    """A table CSV of the tables stage (floats read back exactly: pandas parses at round-trip precision); text
+    columns stay text."""
     try:
-        return pd.read_csv(path, float_precision="round_trip", keep_default_na=False,
+        return pd.read_csv(path, keep_default_na=False,
                            na_values=[""], dtype={"variant": str, "lod": str, "split": str, "device": str, "notes": str})
     except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as err:
         raise ValueError(f"{path}: not a readable table CSV of the tables stage ({err})") from None
