@@ -62,7 +62,11 @@ def test_headers_name_group_metric_and_direction():
     assert column_header("novel_pose_lpips_alex") == ("Novel poses", "LPIPS↓ (alex)")
     assert column_header("novel_view_ssim_animatable_gaussians") == ("Novel views", "SSIM↑ (animatable gaussians)")
     assert column_header("splats") == ("", "Splats")
-    assert column_header("completeness_mm_garment") == ("", "completeness (mm)↓ (garment)")
+    # The regions table groups its columns by metric.
+    assert column_header("completeness_mm_garment") == ("completeness (mm)↓", "garment")
+    assert column_header("ssim_background") == ("SSIM↑", "background")
+    assert [column_header(c) for c in ("drift_mm", "drift_mm_last")] == [("drift (mm)↓", "mean"), ("drift (mm)↓", "last frame")]
+    assert column_header("novel_pose_drift_mm_last") == ("Novel poses", "drift (mm)↓ (last)")
 
 
 def _frame() -> pd.DataFrame:
@@ -185,3 +189,21 @@ def test_main_table_is_table_1_and_its_csv_reads_back_at_full_precision(tmp_path
     assert (out / "synthetic.html").read_text().count("<tr>") == 1 + 2  # header labels, pig, blank
     # The region metrics are the regions table's alone.
     assert not [c for c in rows[0] if any(key in c for key in REGION_KEYS)]
+
+
+def test_default_target_builds_the_regions_table_and_the_reports_turntable(tmp_path):
+    """The region metrics left the main table: the default target of a dataset with ground truth builds the regions
+    table, and the report's short turntable (the animate rule's `preview` clip)."""
+    from test_tables import _synthetic_workdir
+    from test_workflow import job_counts, snakemake_run
+
+    work = _synthetic_workdir(tmp_path)
+    output = snakemake_run(work, "--dry-run", "--printshellcmds", "--config", "preset=config/test preset.yaml")
+    assert job_counts(output) == {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": 1, "render_split": 2,
+                                  "evaluate": 4, "make_tables": 1, "make_table": 1, "montage_split": 2, "animate": 1,
+                                  "all": 1}
+    commands = [line for line in output.splitlines() if "python -m pig " in line]
+    assert any("python -m pig tables --table regions " in line for line in commands)
+    animate = next(line for line in commands if "python -m pig animate " in line)
+    assert "--output results/synthetic/subject00/pig/animate/preview --page " in animate
+    assert "--seconds 2.5 --orbit-period 2.5 --size 160 160" in animate and "--motion" not in animate

@@ -23,6 +23,7 @@ LABELS = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓", "fid": "FID
           "sigma_body": "σ body (rad)", "sigma_body_deg": "σ body (°)"}
 MM_LABELS = {"accuracy": "accuracy (mm)↓", "completeness": "completeness (mm)↓", "drift": "drift (mm)↓"}
 GROUPS = {"novel_view": "Novel views", "novel_pose": "Novel poses"}
+REGIONS = {"garment", "body", "background"}  # pig.metrics.regions' masks
 SUPERSCRIPT = str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")
 
 
@@ -73,7 +74,8 @@ def format_count(value: float) -> str:
 
 
 def column_header(name: str) -> tuple[str, str]:
-    """(group, label) of a column: `novel_view_lpips_alex` -> ("Novel views", "LPIPS↓ (alex)"); group '' when none."""
+    """(group, label) of a column: `novel_view_lpips_alex` -> ("Novel views", "LPIPS↓ (alex)"); a region column
+    outside a split groups under its metric: `psnr_garment` -> ("PSNR↑", "garment"); group '' when none."""
     group = ""
     for split, title in GROUPS.items():
         if name.startswith(f"{split}_"):
@@ -86,8 +88,12 @@ def column_header(name: str) -> tuple[str, str]:
         label, rest = LABELS[kind], [t for t in tokens if t != kind]
     elif kind == "mm":
         label, rest = MM_LABELS.get(tokens[0], f"{tokens[0]} (mm)"), [t for t in tokens[1:] if t != "mm"]
+        if tokens[0] == "drift" and not group:  # drift_mm (mean over frames) beside drift_mm_last
+            return label, " ".join(rest) + " frame" if rest else "mean"
     else:
         label, rest = name.replace("_", " "), []
+    if rest and not group and set(rest) <= REGIONS:
+        return label, " ".join(rest)
     return group, f"{label} ({' '.join(rest)})" if rest else label
 
 
