@@ -9,6 +9,8 @@ docs/report_tables.png is the first command on the report of a cpu-demo default 
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -38,14 +40,21 @@ def turntable_seconds(checkpoint: Path, preset: str, repeats: int) -> None:
     """Wall time of `pig animate` with the preview clip's options (workflow/rules/common.smk), start to end."""
     options = next(line.split("=", 1)[1].strip().strip('"') for line in
                    (REPO / "workflow" / "rules" / "common.smk").read_text().splitlines() if line.startswith("PREVIEW_OPTIONS"))
-    print(f"| run | wall s | options: {options} |\n|---|---|---|")
+    print(f"| run | wall s | CPU s (user + sys) | load average (1 min) |\n|---|---|---|---|")
     for run in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            start = time.perf_counter()
+            load, cpu_before, start = os.getloadavg()[0], _children_cpu(), time.perf_counter()
             subprocess.run([sys.executable, "-m", "pig", "animate", "--checkpoint", str(checkpoint), "--output",
                             f"{tmp}/preview", "--page", f"{tmp}/preview.html", "--preset", preset, "--quiet",
                             *options.split()], check=True, capture_output=True)
-            print(f"| {run} | {time.perf_counter() - start:.1f} | |")
+            wall, cpu = time.perf_counter() - start, _children_cpu() - cpu_before
+            print(f"| {run} | {wall:.1f} | {cpu:.1f} | {load:.1f} |")
+    print(f"options: {options}")
+
+
+def _children_cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def main() -> None:
