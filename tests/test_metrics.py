@@ -343,7 +343,8 @@ def test_evaluate_small_set_gets_a_flagged_fid_and_strict_json(tmp_path, empty_h
     count_note = "FID over 5 images per set, biased: fewer than the evaluate stage's fid_min_images"
     markdown = (tables / "dna.md").read_text()
     notes = dict(re.findall(r"^(\d+)\. (.*)$", markdown, flags=re.M))
-    marker = next(k for k, note in notes.items() if note == count_note).translate(str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹"))
+    number = next(k for k, note in notes.items() if note == count_note)
+    marker = number.translate(str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹"))
     row = next(line for line in markdown.splitlines() if line.startswith("| pig"))
     assert f"| n/a | {fid_text}{marker} |" in row
     assert "FID over 5 images (< 2000): biased high, compare only at equal N" in notes.values()
@@ -398,8 +399,8 @@ def test_evaluate_with_vgg_and_the_tables_name_the_backbone(tmp_path, empty_hub,
     assert main.loc["pig", "novel_view_lpips_vgg"] == pytest.approx(summary["lpips"], rel=1e-5)
     lod = pd.read_csv(tables / "dna_lod.csv")
     assert "lpips_vgg" in lod.columns and "lpips" not in lod.columns
-    assert "novel_view_lpips_vgg" in (tables / "dna.md").read_text().splitlines()[2]
-    assert "| lpips_vgg |" in (tables / "dna_lod.md").read_text()
+    assert "| Novel views LPIPS↓ (vgg) |" in (tables / "dna.md").read_text().splitlines()[2]
+    assert "| LPIPS↓ (vgg) |" in (tables / "dna_lod.md").read_text()
 
 
 def _scored(root, subject: str, net: str | None):

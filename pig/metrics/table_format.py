@@ -121,7 +121,8 @@ def format_table(table: pd.DataFrame) -> FormattedTable:
     shown = [c for c in table.columns if c not in hidden]
     rows = []
     for _, record in table.iterrows():
-        row_notes = [n for n in str(record["notes"]).split("; ") if n] if "notes" in table and isinstance(record["notes"], str) else []
+        text = record["notes"] if "notes" in table else None
+        row_notes = [n for n in text.split("; ") if n] if isinstance(text, str) else []
         cells = []
         for index, column in enumerate(shown):
             marks = [mark(n) for n in row_notes] if index == 0 else []

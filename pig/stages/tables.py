@@ -287,7 +287,7 @@ def table_files(name: str, frame: pd.DataFrame, title: str) -> dict[str, str]:
     """{file name: text} of one table: `name`.csv at full precision (floats as their shortest repr, which reads
     back exactly), `name`.md and `name`.html (the report's page), both formatted from the CSV's text."""
     text = frame.to_csv(index=False)
-    shown = read_table(io.StringIO(text))
+    shown = read_table(io.StringIO(text)) if len(frame.columns) else frame  # a table without rows has no columns
     return {f"{name}.csv": text, f"{name}.md": to_markdown(shown, title), f"{name}.html": to_html(shown, title)}
 
 
