@@ -153,8 +153,7 @@ def to_markdown(table: pd.DataFrame, title: str) -> str:
 
 PAGE_STYLE = """
 body { margin: 0; padding: 16px; font: 14px/1.4 system-ui, -apple-system, "Segoe UI", sans-serif; color: #1e293b; }
-h1 { font-size: 16px; margin: 0 0 4px; }
-p.caption { margin: 0 0 12px; color: #475569; max-width: 60em; }
+h1 { font-size: 16px; margin: 0 0 8px; }
 div.scroll { overflow-x: auto; max-width: 100%; }
 table { border-collapse: separate; border-spacing: 0; font-variant-numeric: tabular-nums; }
 th, td { padding: 4px 10px; white-space: nowrap; border-bottom: 1px solid #e2e8f0; background: #fff; }
@@ -169,7 +168,7 @@ ol.notes { color: #475569; margin: 12px 0 0; padding-left: 24px; max-width: 60em
 """
 
 
-def to_html(table: pd.DataFrame, title: str, caption: str = "") -> str:
+def to_html(table: pd.DataFrame, title: str) -> str:
     """A self-contained HTML page of the table: the column groups (novel views, novel poses) as a first header row,
     a fixed first column when the table scrolls sideways, numbers right-aligned, footnotes as a numbered list."""
     formatted = format_table(table)
@@ -205,9 +204,8 @@ def to_html(table: pd.DataFrame, title: str, caption: str = "") -> str:
         body.append("<tr>" + "".join(cells) + "</tr>")
     notes = ("<ol class=\"notes\">" + "".join(f"<li>{html.escape(n)}</li>" for n in formatted.notes) + "</ol>"
              if formatted.notes else "")
-    caption_html = f'<p class="caption">{html.escape(caption)}</p>' if caption else ""
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>'
-            f"<style>{PAGE_STYLE}</style></head><body><h1>{html.escape(title)}</h1>{caption_html}"
+            f"<style>{PAGE_STYLE}</style></head><body><h1>{html.escape(title)}</h1>"
             f'<div class="scroll"><table><thead>{"".join(head)}</thead><tbody>{"".join(body)}</tbody></table></div>'
             f"{notes}</body></html>\n")
 
