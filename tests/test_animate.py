@@ -8,6 +8,7 @@ import pytest
 from pig.avatar.animation import Orbit, animate, look_at
 from pig.body.motion import DEMO_MOTION
 from pig.render.api import RasterizerConfig
+from pig.stages import animate as animate_stage
 
 CPU = RasterizerConfig(backend="cpu")
 
@@ -107,3 +108,30 @@ def test_capture_camera_and_bad_input(fitted, tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("animate: error: ") and message in err and "\n" not in err, err
         assert not (tmp_path / argv[1]).exists()
+
+
+def test_video_page_embeds_the_video_whole(tmp_path):
+    import base64
+    import re
+
+    from pig.render.video_page import is_video_page, video_page
+
+    video = tmp_path / "clip.webm"
+    video.write_bytes(bytes(range(256)) * 7)
+    page = video_page(video, "a <clip>")
+    embedded = re.search(r'<video [^>]*src="data:video/webm;base64,([A-Za-z0-9+/=]+)"', page).group(1)
+    assert base64.b64decode(embedded) == video.read_bytes() and "a &lt;clip&gt;" in page
+    (tmp_path / "page.html").write_text(page)
+    assert is_video_page(tmp_path / "page.html") and not is_video_page(video)
+    with pytest.raises(ValueError, match=r"clip\.gif: expected a video file ending in \.webm or \.mp4"):
+        video_page(tmp_path / "clip.gif", "x")
+
+
+def test_page_option_leaves_a_file_it_did_not_write(tmp_path, capsys):
+    other = tmp_path / "notes.html"
+    other.write_text("<p>mine</p>")
+    with pytest.raises(SystemExit) as exit_info:
+        animate_stage.main(["--checkpoint", str(tmp_path / "avatar.pt"), "--output", str(tmp_path / "out"),
+                            "--page", str(other), "--device", "cpu"])
+    assert exit_info.value.code == 2 and other.read_text() == "<p>mine</p>"
+    assert f"--page: {other} exists and is not a page this stage wrote; pass --overwrite to replace it" in capsys.readouterr().err

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import cv2
 import numpy as np
@@ -338,13 +339,18 @@ def test_evaluate_small_set_gets_a_flagged_fid_and_strict_json(tmp_path, empty_h
     assert main.loc["pig", "novel_view_fid_images"] == 5 and main.loc["pig", "novel_view_fid_biased"] == 1
     assert math.isnan(main.loc["pig", "novel_view_lpips_alex"])
     assert all(main[c].dtype.kind in "fi" for c in main.columns if c.startswith("novel_"))  # numeric CSV columns
-    fid_text = f"{summary['fid']:.3f}" if summary["fid"] < 10 else f"{summary['fid']:.2f}"
+    fid_text = f"{summary['fid']:.1f}"  # FID to one decimal, its image count and bias in a footnote
+    count_note = "FID over 5 images per set, biased: fewer than the evaluate stage's fid_min_images"
     markdown = (tables / "dna.md").read_text()
-    row = next(line for line in markdown.splitlines() if line.startswith("| pig |"))
-    assert f"| n/a | {fid_text} (N=5, biased) |" in row
-    assert "novel_view_fid_images" not in markdown and "- FID over 5 images (< 2000): biased high" in markdown
+    notes = dict(re.findall(r"^(\d+)\. (.*)$", markdown, flags=re.M))
+    number = next(k for k, note in notes.items() if note == count_note)
+    marker = number.translate(str.maketrans("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹"))
+    row = next(line for line in markdown.splitlines() if line.startswith("| pig"))
+    assert f"| n/a | {fid_text}{marker} |" in row
+    assert "FID over 5 images (< 2000): biased high, compare only at equal N" in notes.values()
+    assert "fid_images" not in markdown
     lod = (tables / "dna_lod.md").read_text()
-    assert f"{fid_text} (N=5, biased)" in lod and "| n/a | cpu |" in lod  # fps null -> n/a
+    assert f"| {fid_text}{marker} |" in lod and "| n/a | cpu |" in lod  # fps null -> n/a
 
 
 def test_evaluate_without_inception_weights_leaves_fid_missing(tmp_path, empty_hub, rng):
@@ -393,8 +399,8 @@ def test_evaluate_with_vgg_and_the_tables_name_the_backbone(tmp_path, empty_hub,
     assert main.loc["pig", "novel_view_lpips_vgg"] == pytest.approx(summary["lpips"], rel=1e-5)
     lod = pd.read_csv(tables / "dna_lod.csv")
     assert "lpips_vgg" in lod.columns and "lpips" not in lod.columns
-    assert "novel_view_lpips_vgg" in (tables / "dna.md").read_text().splitlines()[2]
-    assert "| lpips_vgg |" in (tables / "dna_lod.md").read_text()
+    assert "| Novel views LPIPS↓ (vgg) |" in (tables / "dna.md").read_text().splitlines()[2]
+    assert "| LPIPS↓ (vgg) |" in (tables / "dna_lod.md").read_text()
 
 
 def _scored(root, subject: str, net: str | None):
@@ -434,10 +440,12 @@ def test_tables_state_the_smallest_fid_set_and_refuse_a_fid_without_its_count(tm
     main = pd.read_csv(out / "dna.csv").set_index("variant")
     assert main.loc["pig", "novel_view_fid"] == pytest.approx(11.0)
     assert main.loc["pig", "novel_view_fid_images"] == 1999 and main.loc["pig", "novel_view_fid_biased"] == 1
-    assert "| 11.00 (N=1999, biased) |" in (out / "dna.md").read_text()
+    markdown = (out / "dna.md").read_text()
+    assert "| 11.0¹ |" in markdown
+    assert "1. FID over 1999 images per set, biased: fewer than the evaluate stage's fid_min_images" in markdown
     assert math.isnan(main.loc["pig", "novel_pose_fid_images"])  # no novel-pose summary, no count
     make_tables("dna", [full], [], ["pig"], out)
-    assert "| 10.00 (N=2000) |" in (out / "dna.md").read_text()
+    assert "| 10.0¹ |" in (out / "dna.md").read_text() and "1. FID over 2000 images per set\n" in (out / "dna.md").read_text()
     assert pd.read_csv(out / "dna.csv").set_index("variant").loc["pig", "novel_view_fid_biased"] == 0
 
     older = _scored(tmp_path, "s2", "alex")

@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -85,7 +86,9 @@ def test_tables_layout_and_means(tmp_path):
     assert lod["psnr"].tolist() == pytest.approx([31.0, 32.0, 26.0, 27.0])
     assert {"mb", "fps", "device"} <= set(lod.columns)
     markdown = (out / "synthetic.md").read_text()
-    assert "| pig |" in markdown and "n/a" in markdown and "- FID is NaN: needs >= 2000 images" in markdown
+    # Rounded as papers print, notes as footnotes marked on their rows.
+    assert re.search(r"^\| pig[¹²³⁴⁵⁶⁷⁸⁹⁰˒]* \| 32\.00 \|", markdown, flags=re.M) and "n/a" in markdown
+    assert re.search(r"^\d+\. FID is NaN: needs >= 2000 images", markdown, flags=re.M)
     assert (out / "synthetic_training.png").stat().st_size > 1000
 
 
@@ -140,8 +143,8 @@ def test_workflow_end_to_end(tmp_path):
         reader = RenderReader(renders / split / "lod0")
         assert all(reader.has(cam, int(frame)) for cam in split_json[split]["cameras"] for frame in split_json[split]["frames"])
 
-    # The report: the workflow's description, the tables in their captions, the training plot and a montage of
-    # each split, each embedded.
+    # The report: the workflow's description, the tables as HTML pages (their numbers rounded from the CSV), the
+    # training plot, the fit's loss curve, a montage of each split and the turntable's page, each embedded.
     montages = [f"results/synthetic/subject00/pig/montage/{split}.png" for split in ("novel_view", "novel_pose")]
     for montage in montages:
         assert (work / montage).stat().st_size > 10_000
@@ -152,9 +155,13 @@ def test_workflow_end_to_end(tmp_path):
     assert "compute preset <tt" in html and "dir/pipeline preset.yaml</tt>" in html
     with open(tables / "synthetic.csv") as table:
         pig_row = next(row for row in csv.DictReader(table) if row["variant"] == "pig")
-    assert f"<td>{pig_row['novel_view_psnr']}</td>" in html  # the main table, as a table in its caption
-    assert "<th class=\\\"head\\\">lod</th>" in html  # the LOD table
+    page = (tables / "synthetic.html").read_text()
+    assert f">{float(pig_row['novel_view_psnr']):.2f}<" in page  # 2 decimals (ties aside: tests/test_table_format.py)
     assert "System Message" not in html  # docutils' notice of a broken caption
-    for path in ["results/tables/synthetic_training.png", *montages]:
+    pages = ["results/tables/synthetic.html", "results/tables/synthetic_lod.html", "results/tables/synthetic_regions.html",
+             "results/synthetic/subject00/pig/animate/preview.html"]
+    pictures = ["results/tables/synthetic_training.png", "results/synthetic/subject00/pig/train_log.png", *montages]
+    for path in [*pages, *pictures]:
         assert html.count(f'"{path}"') >= 1, path
-    assert html.count('"mime_type": "image/png"') == 3
+    assert html.count('"mime_type": "image/png"') == len(pictures)
+    assert html.count('"mime_type": "text/html"') == len(pages)

@@ -30,9 +30,10 @@ REPO = Path(__file__).resolve().parent.parent
 SLURM_CONF = Path("/etc/slurm/slurm.conf")  # Debian's compiled-in default
 MARK = "# written by pig's tests/test_slurm_cluster.py"
 TOOLS = ("munged", "mungekey", "slurmctld", "slurmd", "sinfo", "sbatch", "squeue", "sacct", "scancel")
-# Jobs of the default target with the test preset (2 LODs, 2 held-out splits, one variant).
+# Jobs of the default target with the test preset (2 LODs, 2 held-out splits, one variant): the main and regions
+# tables, the montages and the report's turntable.
 JOBS = {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": 1, "render_split": 2, "evaluate": 4,
-        "montage_split": 2, "make_tables": 1}
+        "montage_split": 2, "make_tables": 1, "make_table": 1, "animate": 1}
 
 
 def skip_reason() -> str | None:

@@ -91,7 +91,7 @@ def test_ablation_table_of_a_subset_of_variants_with_region_columns(tmp_path):
     assert table.loc[BLANK_ROW, "novel_view_psnr"] == 10.0 and math.isnan(table.loc[BLANK_ROW, "novel_view_psnr_garment"])
     markdown = (out / "synthetic_ablation.md").read_text()
     assert markdown.startswith("## synthetic: structural ablation") and "| template_bound |" in markdown
-    assert "novel_pose_drift_mm_last" in markdown and "no_offsets" not in markdown
+    assert "Novel poses drift (mm)↓ (last)" in markdown and "no_offsets" not in markdown
 
 
 def test_real_captures_give_no_region_columns_and_no_regions_table(tmp_path):
@@ -157,7 +157,7 @@ def test_noise_table_takes_sigma_from_the_preset_and_sorts_by_it(tmp_path):
     for row in table.itertuples(index=False):
         assert row.sigma_body == sigmas[row.variant] and row.sigma_body_deg == pytest.approx(sigmas[row.variant] * 180 / math.pi, rel=1e-5)
         assert row.novel_view_psnr == pytest.approx(_expected(paths, row.variant, "novel_view", "psnr"), rel=1e-5)
-    assert "| noise_0.25 | 0.250 | 14.32 |" in (out / "synthetic_noise.md").read_text()
+    assert "| noise_0.25 | 0.250 | 14.3 |" in (out / "synthetic_noise.md").read_text()
 
 
 def test_lod_table_has_the_single_level_variant_as_its_1of1_row(tmp_path):

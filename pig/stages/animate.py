@@ -1,7 +1,8 @@
 """Animate stage: drive a fitted avatar with a motion clip (or hold a pose) and render a video from a capture camera or an orbit.
 
 Writes --output/animation.webm (VP9, browser-playable), animation.json, and with --png / --exr the frames
-(PNG with alpha; EXR with R, G, B, A and depth Z). The library call is pig.avatar.animation.animate.
+(PNG with alpha; EXR with R, G, B, A and depth Z); with --page, an HTML page playing the video (the report's
+item). The library call is pig.avatar.animation.animate.
 """
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from pathlib import Path
 from pig.avatar.animation import Orbit, animate
 from pig.config import load_preset, load_section
 from pig.render.api import RasterizerConfig
+from pig.render.video_page import is_video_page, video_page
+from pig._io import write_text
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 
 MAX_FPS = 1000.0
@@ -60,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="orbit camera image size in pixels")
     parser.add_argument("--seconds", type=_in_range(float, 0, MAX_SECONDS, low_open=True), default=None,
                         help="length of a still pose's video (default: one revolution)")
+    parser.add_argument("--page", type=Path, default=None,
+                        help="also write this HTML file: the video embedded in a page (Snakemake's report shows it)")
     parser.add_argument("--png", action="store_true", help="also write frames/NNNNN.png (RGBA)")
     parser.add_argument("--exr", action="store_true", help="also write frames/NNNNN.exr (R, G, B, A, depth Z)")
     add_preset_argument(parser, "its rasterizer section")
@@ -69,9 +74,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     orbit = Orbit(radius=args.orbit_radius, height=args.orbit_height, period_s=args.orbit_period, width=args.size[0],
                   height_px=args.size[1])
+    if args.page is not None and args.page.exists() and not args.overwrite and not is_video_page(args.page):
+        parser.error(f"--page: {args.page} exists and is not a page this stage wrote; pass --overwrite to replace it")
     rasterizer = load_section(load_preset(args.preset), "rasterizer", RasterizerConfig)
     video = animate(args.checkpoint, args.output, args.motion, args.camera, args.capture, args.lod, args.frames, args.fps,
                     args.up, orbit, args.seconds, args.png, args.exr, args.device, rasterizer, args.overwrite)
+    if args.page is not None:
+        clip = args.motion.stem if args.motion else "turntable"
+        write_text(args.page, video_page(video, f"{clip}: {args.checkpoint}"))
     print(video)
     return 0
 

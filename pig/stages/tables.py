@@ -1,7 +1,7 @@
-"""Tables stage: the paper's result tables from the evaluate stage's summaries, as CSV and Markdown, plus a plot.
+"""Tables stage: the paper's result tables from the evaluate stage's summaries, as CSV, Markdown and HTML, plus a plot.
 
 Layouts of Section 4 (`--table`):
-- `main`: Tables 1-2 (variants x novel-view / novel-pose PSNR, SSIM, LPIPS, FID, splats), `{dataset}.csv`; the
+- `main`: Tables 1-2 (variant, then novel-view and novel-pose PSNR, SSIM, LPIPS, FID, then splats), `{dataset}.csv`; the
   LOD table (splats, metrics, model MB, FPS per level; a single-level variant such as `lod_1of1` is its `1/1`
   row), `{dataset}_lod.csv`; held-out PSNR against training wall time of every variant, `{dataset}_training.png`.
 - `ablation`: the structural ablation (Table 4) in the main table's layout, `{dataset}_ablation.csv`.
@@ -9,15 +9,19 @@ Layouts of Section 4 (`--table`):
   and in degrees), `{dataset}_noise.csv`; sigma comes from the preset the variants were fitted with.
 - `regions`: the ground-truth metrics of synthetic captures per variant and split, `{dataset}_regions.csv`.
 Summaries of captures with ground truth carry REGION_KEYS (PSNR/SSIM per region, geometry error and
-correspondence drift in mm); the main-layout tables then gain a `{split}_{key}` column each, and leave them out
-for real captures, which have none. The regions table is refused when no summary has them.
+correspondence drift in mm); they go to the regions table, and the ablation and noise tables (whose subjects the
+regions table does not cover) gain a `{split}_{key}` column each; real captures have none. The regions table is
+refused when no summary has them.
 The LPIPS columns carry their backbone in the header (`novel_view_lpips_vgg`, `lpips_alex`, ...). Each FID
 column has two numeric companions, `..._fid_images` (images per set; the smallest over the subjects
 averaged) and `..._fid_biased` (1 when a set had fewer than the evaluate stage's `fid_min_images`); the
-Markdown shows them in the FID cell, as `123.40 (N=36, biased)`.
+Markdown and HTML show them as a footnote on the FID cell.
+Each table is `{name}.csv` (full precision), `{name}.md` and `{name}.html` (rounded as papers print them, notes as
+footnotes: pig.metrics.table_format; the HTML is the report's page).
 """
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 
@@ -31,6 +35,7 @@ from pig.names import safe_name  # noqa: E402
 from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser  # noqa: E402
 from pig._io import read_record, write_figure, write_text  # noqa: E402
 from pig._outputs import claim_files  # noqa: E402
+from pig.metrics.table_format import read_table, to_html, to_markdown  # noqa: E402
 
 SPLITS = ("novel_view", "novel_pose")
 METRICS = ("psnr", "ssim", "lpips", "fid")
@@ -150,11 +155,12 @@ def finest_by_variant(summaries: pd.DataFrame, variants: list[str]):
         yield variant, part
 
 
-def main_table(summaries: pd.DataFrame, variants: list[str], blank: bool = True) -> pd.DataFrame:
+def main_table(summaries: pd.DataFrame, variants: list[str], blank: bool = True, regions: bool = True) -> pd.DataFrame:
     """Tables 1-2: per variant (finest LOD, mean over subjects) novel-view and novel-pose metrics and splats,
-    then `{split}_{key}` per REGION_KEYS where the summaries have them; with `blank`, the black-image row."""
+    then, with `regions`, `{split}_{key}` per REGION_KEYS where the summaries have them; with `blank`, the
+    black-image row."""
     lpips = lpips_column(summaries)
-    regions = REGION_KEYS if has_regions(summaries) else ()
+    regions = REGION_KEYS if regions and has_regions(summaries) else ()
     rows = []
     for variant, part in finest_by_variant(summaries, variants):
         row = {"variant": variant}
@@ -236,31 +242,6 @@ def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_
     return pd.DataFrame(rows).rename(columns=_metric_names(lpips, protocol_suffix(summaries)))
 
 
-def to_markdown(table: pd.DataFrame, title: str) -> str:
-    """A GitHub Markdown table; NaN prints as 'n/a', a FID carries its image count and bias flag in its cell
-    (`123.40 (N=36, biased)`), and the notes column becomes a list below the table."""
-    notes = sorted({n for cell in table.get("notes", []) for n in str(cell).split("; ") if n})
-
-    def cell(value) -> str:
-        if isinstance(value, float):
-            if math.isnan(value):
-                return "n/a"
-            return f"{value:.3f}" if abs(value) < 10 else f"{value:.2f}"
-        return str(value)
-
-    shown = table.drop(columns=["notes"], errors="ignore")
-    for column in [c for c in shown.columns if f"{c}_images" in shown and f"{c}_biased" in shown]:
-        images, biased = shown.pop(f"{column}_images"), shown.pop(f"{column}_biased")
-        shown[column] = [cell(value) if math.isnan(value) else
-                         f"{cell(value)} (N={int(n)}{', biased' if b else ''})"
-                         for value, n, b in zip(table[column], images, biased)]
-    lines = [f"## {title}", "", "| " + " | ".join(shown.columns) + " |", "|" + "---|" * len(shown.columns)]
-    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in shown.itertuples(index=False)]
-    if notes:
-        lines += ["", "Notes:", ""] + [f"- {note}" for note in notes]
-    return "\n".join(lines) + "\n"
-
-
 def read_train_log(path: Path) -> pd.DataFrame:
     """Training time and held-out PSNR of one train_log.csv, checked: numbers, both columns present. The time is
     `train_s` (held-out evaluations left out); logs older than that column give `wall_s` in its place."""
@@ -302,34 +283,38 @@ def training_plot(logs: dict[str, dict[Path, pd.DataFrame]], path: Path, title: 
     write_figure(path, fig)
 
 
+def table_files(name: str, frame: pd.DataFrame, title: str) -> dict[str, str]:
+    """{file name: text} of one table: `name`.csv at full precision (floats as their shortest repr, which reads
+    back exactly), `name`.md and `name`.html (the report's page), both formatted from the CSV's text."""
+    text = frame.to_csv(index=False)
+    shown = read_table(io.StringIO(text)) if len(frame.columns) else frame  # a table without rows has no columns
+    return {f"{name}.csv": text, f"{name}.md": to_markdown(shown, title), f"{name}.html": to_html(shown, title)}
+
+
 def make_tables(dataset: str, summaries: list[Path], train_logs: list[Path], variants: list[str], output: Path,
                 overwrite: bool = False) -> None:
     """The main tables: write the main and LOD tables and the training plot of `variants` to `output`, after every
     input has been read and checked; files of the same names are replaced only in a tables output folder, or
-    with `overwrite`."""
+    with `overwrite`. The main table is the paper's Table 1 layout; region metrics are the regions table's."""
     safe_name(dataset, "dataset name", "--dataset")  # it names the files written into `output`
     table = read_summaries(summaries)
-    main = main_table(table, variants)
+    main = main_table(table, variants, regions=False)
     lod = lod_table(table, variants)
     logs = {v: {p: read_train_log(p) for p in map(Path, train_logs) if p.parent.name == v} for v in variants}
-    texts = {
-        f"{dataset}.csv": main.to_csv(index=False, float_format="%.6g"),
-        f"{dataset}.md": to_markdown(main, f"{dataset}: novel views and novel poses (finest LOD)"),
-        f"{dataset}_lod.csv": lod.to_csv(index=False, float_format="%.6g"),
-        f"{dataset}_lod.md": to_markdown(lod, f"{dataset}: levels of detail (novel views)"),
-    }
+    texts = {**table_files(dataset, main, f"{dataset}: novel views and novel poses (finest LOD)"),
+             **table_files(f"{dataset}_lod", lod, f"{dataset}: levels of detail (novel views)")}
     plot = f"{dataset}_training.png"
     claim_files(output, [*texts, plot], "tables", [*summaries, *train_logs], overwrite)
     for name, text in texts.items():
         write_text(output / name, text)
     training_plot(logs, output / plot, f"{dataset}: held-out PSNR during training")
-    print(to_markdown(main, dataset))
-    print(to_markdown(lod, f"{dataset} LOD"))
+    print(texts[f"{dataset}.md"])
+    print(texts[f"{dataset}_lod.md"])
 
 
 def make_table(table: str, dataset: str, summaries: list[Path], variants: list[str], output: Path,
                sigmas: dict[str, float] | None = None, overwrite: bool = False) -> None:
-    """One of the other tables (`ablation`, `noise`, `regions`) of `variants`, as `{dataset}_{table}.csv/.md`
+    """One of the other tables (`ablation`, `noise`, `regions`) of `variants`, as `{dataset}_{table}.csv/.md/.html`
     in `output`, after every input has been read and checked; `sigmas` {variant: sigma_body} for `noise`."""
     safe_name(dataset, "dataset name", "--dataset")  # it names the files written into `output`
     summary = read_summaries(summaries)
@@ -343,8 +328,7 @@ def make_table(table: str, dataset: str, summaries: list[Path], variants: list[s
         frame, title = regions_table(summary, variants), f"{dataset}: ground-truth metrics per region (finest LOD)"
     else:
         raise ValueError(f"unknown table {table!r}; expected one of {[t for t in TABLES if t != 'main']}")
-    texts = {f"{dataset}_{table}.csv": frame.to_csv(index=False, float_format="%.6g"),
-             f"{dataset}_{table}.md": to_markdown(frame, title)}
+    texts = table_files(f"{dataset}_{table}", frame, title)
     claim_files(output, texts, "tables", summaries, overwrite)
     for name, text in texts.items():
         write_text(output / name, text)

@@ -109,6 +109,19 @@ class HeadlessChromium:
             raise RuntimeError(f"page script failed: {result['exceptionDetails'].get('text')} ({expression[:80]})")
         return result["result"].get("value")
 
+    def evaluate_in_frame(self, expression: str, index: int = 0):
+        """The value of a JavaScript expression in the page's `index`-th child frame (an iframe, also one of
+        another origin such as a data: URL, which the page's own script may not read)."""
+        frames = self.call("Page.getFrameTree")["frameTree"].get("childFrames", [])
+        if index >= len(frames):
+            raise RuntimeError(f"page has {len(frames)} child frames, not {index + 1}")
+        context = self.call("Page.createIsolatedWorld", frameId=frames[index]["frame"]["id"])["executionContextId"]
+        result = self.call("Runtime.evaluate", expression=expression, contextId=context, returnByValue=True,
+                           awaitPromise=True)
+        if "exceptionDetails" in result:
+            raise RuntimeError(f"frame script failed: {result['exceptionDetails'].get('text')} ({expression[:80]})")
+        return result["result"].get("value")
+
     def wait_for(self, expression: str, timeout_s: float = 30.0, every_s: float = 0.05):
         """Poll a JavaScript expression until it is truthy; return its value."""
         end = time.monotonic() + timeout_s

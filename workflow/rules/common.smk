@@ -32,6 +32,10 @@ CPU_ENV = "../../envs/pig.yaml"
 CUDA_ENV = "../../envs/pig-cuda.yaml"
 MOTIONS = files("pig.data") / "motions"
 ANIMATE_OPTIONS = "--fps 15 --size 384 384"  # the examples: small and quick on a CPU
+# The default target's turntable for the report: 20 frames of 160 x 160, one revolution; ~8 s on two CPU cores for
+# the cpu-demo avatar (benchmarks/NOTES.md).
+PREVIEW_CLIP = "preview"
+PREVIEW_OPTIONS = "--fps 8 --seconds 2.5 --orbit-period 2.5 --size 160 160"
 # The keys of a dataset YAML that pig.stages.preprocess reads (subject lists and root are not among them).
 PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split")
 
@@ -187,14 +191,17 @@ def raw_root(dataset, subject):
 
 
 def default_targets():
-    """The config dataset's main table, and a montage of each split of its runs for the report."""
+    """The config dataset's main table (and its regions table where it has ground truth, the region metrics'
+    only table), a montage of each split of its runs and a short turntable of its first run for the report."""
     dataset = config["dataset"]
+    runs = table_runs(dataset, "main")
     montages = [
-        f"results/{dataset}/{subject}/{variant}/montage/{split}.png"
-        for subject, variant in table_runs(dataset, "main")
-        for split in SPLITS
+        f"results/{dataset}/{subject}/{variant}/montage/{split}.png" for subject, variant in runs for split in SPLITS
     ]
-    return [f"results/tables/{dataset}.csv", *montages]
+    subject, variant = next((run for run in runs if run[1] == "pig"), runs[0])
+    preview = f"results/{dataset}/{subject}/{variant}/animate/{PREVIEW_CLIP}.html"
+    regions = [table_target(dataset, "regions")] if dataset_config(dataset).get("generated", False) else []
+    return [table_target(dataset, "main"), *regions, *montages, preview]
 
 
 def _canonical(value):
@@ -398,13 +405,18 @@ def table_train_logs(wildcards):
 
 
 def motion_argument(wildcards):
-    """`--motion FILE` for a shipped clip, nothing for the turntable (quoted for the shell)."""
-    if wildcards.clip == "turntable":
+    """`--motion FILE` for a shipped clip, nothing for a turntable (quoted for the shell)."""
+    if wildcards.clip in ("turntable", PREVIEW_CLIP):
         return ""
     return f"--motion {shlex.quote(str(MOTIONS / f'{wildcards.clip}.npz'))}"
+
+
+def animate_options(wildcards):
+    """The animate stage's size and length options: the preview's (PREVIEW_OPTIONS) or the examples'."""
+    return PREVIEW_OPTIONS if wildcards.clip == PREVIEW_CLIP else ANIMATE_OPTIONS
 
 
 def animate_examples():
     """A turntable and the demo motion of the default dataset's first subject, full method."""
     subject = subjects(config["dataset"])[0]
-    return [f"results/{config['dataset']}/{subject}/pig/animate/{clip}" for clip in ("turntable", "demo")]
+    return [f"results/{config['dataset']}/{subject}/pig/animate/{clip}.html" for clip in ("turntable", "demo")]

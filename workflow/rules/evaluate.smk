@@ -72,25 +72,28 @@ rule make_tables:
         summaries=lambda wildcards: table_summaries(wildcards.dataset, "main"),
         train_logs=table_train_logs,
     output:
-        table=report(
-            "results/tables/{dataset}.csv",
+        table="results/tables/{dataset}.csv",
+        markdown="results/tables/{dataset}.md",
+        page=report(
+            "results/tables/{dataset}.html",
             caption="../report/main_table.rst",
             category="Tables",
             labels={"dataset": "{dataset}", "table": "main"},
         ),
-        markdown="results/tables/{dataset}.md",
-        lod=report(
-            "results/tables/{dataset}_lod.csv",
+        lod="results/tables/{dataset}_lod.csv",
+        lod_markdown="results/tables/{dataset}_lod.md",
+        lod_page=report(
+            "results/tables/{dataset}_lod.html",
             caption="../report/lod_table.rst",
             category="Tables",
             labels={"dataset": "{dataset}", "table": "levels of detail"},
         ),
-        lod_markdown="results/tables/{dataset}_lod.md",
         plot=report(
             "results/tables/{dataset}_training.png",
             caption="../report/training.rst",
             category="Training",
-            labels={"dataset": "{dataset}", "figure": "held-out PSNR against time"},
+            subcategory="Held-out PSNR against time",
+            labels={"dataset": "{dataset}"},
         ),
     log:
         "results/tables/logs/{dataset}.log",
@@ -117,13 +120,14 @@ rule make_table:
     input:
         summaries=lambda wildcards: table_summaries(wildcards.dataset, wildcards.table),
     output:
-        table=report(
-            "results/tables/{dataset}_{table}.csv",
+        table="results/tables/{dataset}_{table}.csv",
+        markdown="results/tables/{dataset}_{table}.md",
+        page=report(
+            "results/tables/{dataset}_{table}.html",
             caption="../report/other_table.rst",
             category="Tables",
             labels={"dataset": "{dataset}", "table": "{table}"},
         ),
-        markdown="results/tables/{dataset}_{table}.md",
     log:
         "results/tables/logs/{dataset}_{table}.log",
     benchmark:

@@ -11,6 +11,13 @@ rule fit_avatar:
     output:
         checkpoint="results/{dataset}/{subject}/{variant}/avatar.pt",
         log_csv="results/{dataset}/{subject}/{variant}/train_log.csv",
+        curve=report(
+            "results/{dataset}/{subject}/{variant}/train_log.png",
+            caption="../report/train_log.rst",
+            category="Training",
+            subcategory="Loss curves",
+            labels={"dataset": "{dataset}", "subject": "{subject}", "variant": "{variant}"},
+        ),
     log:
         "results/{dataset}/{subject}/{variant}/logs/fit.log",
     benchmark:
