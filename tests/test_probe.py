@@ -126,7 +126,7 @@ def _preset(tmp_path, **fit):
 
 
 @pytest.mark.slow
-def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_path):
+def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_path, capsys):
     from pig.avatar.training import fit
 
     preset = _preset(tmp_path, iterations=12, eval_every=6, probe_every=5, probe_views=2, probe_scale=2,
@@ -137,6 +137,8 @@ def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_pa
     assert log["iteration"][log["probe_psnr"].notna()].tolist() == [i for i in range(13) if evaluations_due(cfg, i)[1]] \
         == [0, 5, 10, 12]
     assert log["iteration"][log["heldout_psnr"].notna()].tolist() == [6, 12]
+    probe_at_5 = log.loc[log["iteration"] == 5, "probe_psnr"].item()
+    assert f"probe PSNR {probe_at_5:.2f} dB (iteration 5)" in capsys.readouterr().err  # the progress line's
     assert (log["eval_s"].notna() == (log["probe_psnr"].notna() | log["heldout_psnr"].notna())).all()
     # train_s leaves every in-run evaluation out (those at 5, 6 and 10 before the last row).
     last = log.iloc[-1]
@@ -155,3 +157,56 @@ def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_pa
     resumed = pd.read_csv(tmp_path / "resumed" / "train_log.csv")
     for column in ("probe_psnr", "heldout_psnr"):  # the same iterations and, bit-identical CPU fits, values
         pd.testing.assert_series_equal(resumed[column], log[column])
+
+
+def test_train_log_png_draws_binned_losses_and_every_psnr(monkeypatch):
+    from pig.avatar import train_plot
+
+    cfg = load_section(load_preset("cpu-demo"), "fit", FitConfig)
+    rows = [{"iteration": i, "wall_s": 0.3 * i, "train_s": 0.25 * i, "loss": "" if i == 0 else 1 / i, "l1": "",
+             "ssim": "", "lpips": "", "heldout_psnr": 20 + i / 900 if evaluations_due(cfg, i)[0] else "",
+             "heldout_psnr_iterate": "", "probe_psnr": 18 + i / 900 if evaluations_due(cfg, i)[1] else ""}
+            for i in range(cfg.iterations + 1)]
+    drawn = {}
+    monkeypatch.setattr(train_plot, "write_figure", lambda path, figure, dpi=None: drawn.update(figure=figure))
+    train_plot.plot_train_log(Path("unused.png"), rows, "title")
+    ax_loss, ax_psnr = drawn["figure"].axes
+    for ax in (ax_loss, ax_psnr):
+        assert ax.get_xlabel().endswith("[s]")
+    assert ax_psnr.get_ylabel().startswith("held-out novel-view PSNR [dB]")
+    [loss] = ax_loss.get_lines()
+    # 1800 logged losses as 200 means of 9 consecutive rows each.
+    times = np.array([r["train_s"] for r in rows[1:]])
+    losses = np.array([r["loss"] for r in rows[1:]])
+    np.testing.assert_allclose(loss.get_xdata(), times.reshape(200, 9).mean(1))
+    np.testing.assert_allclose(loss.get_ydata(), losses.reshape(200, 9).mean(1))
+    probe, full = ax_psnr.get_lines()
+    expected = [(r["train_s"], r["probe_psnr"]) for r in rows if r["probe_psnr"] != ""]
+    assert list(zip(probe.get_xdata(), probe.get_ydata())) == expected and len(expected) >= 10
+    assert list(zip(full.get_xdata(), full.get_ydata())) == [(r["train_s"], r["heldout_psnr"]) for r in rows
+                                                               if r["heldout_psnr"] != ""]
+    assert full.get_linestyle() == "None" and probe.get_linestyle() == "-"
+
+
+def test_tables_training_plot_draws_probes_where_the_log_has_them(tmp_path, monkeypatch):
+    from pig.stages import tables
+
+    logs = {}
+    for variant, probed in (("pig", True), ("no_precond", False)):
+        path = tmp_path / "synthetic" / "s0" / variant / "train_log.csv"
+        path.parent.mkdir(parents=True)
+        frame = pd.DataFrame({"iteration": [0, 5, 10, 12], "wall_s": [0.0, 5.0, 10.5, 13.0],
+                              "train_s": [0.0, 4.9, 10.0, 12.2], "heldout_psnr": [np.nan, np.nan, 21.0, 22.0]})
+        if probed:
+            frame["probe_psnr"] = [15.0, 16.0, 17.0, 18.0]
+        frame.to_csv(path, index=False)
+        logs[variant] = {path: tables.read_train_log(path)}
+    drawn = []
+    monkeypatch.setattr(tables, "write_figure", lambda path, figure, dpi=None: drawn.extend(
+        (line.get_label(), list(line.get_xdata()), list(line.get_ydata())) for line in figure.axes[0].get_lines()))
+    tables.training_plot(logs, tmp_path / "plot.png", "t")
+    by_label = {label: (x, y) for label, x, y in drawn}
+    assert by_label["pig (s0)"] == ([0.0, 4.9, 10.0, 12.2], [15.0, 16.0, 17.0, 18.0])
+    assert by_label["no_precond (s0)"] == ([10.0, 12.2], [21.0, 22.0])
+    # The probed fit's full evaluations: unlabelled markers beside its line, left out of the legend.
+    assert [(x, y) for label, x, y in drawn if label.startswith("_")] == [([10.0, 12.2], [21.0, 22.0])]

@@ -59,8 +59,8 @@ def plot_train_log(path: Path, rows: list[dict], title: str = "") -> None:
         ax.set_xlabel("training wall time, held-out evaluations left out [s]")
         ax.grid(alpha=0.3)
         if ax.get_lines():
-            ax.legend(fontsize=8)
+            ax.legend(fontsize=8, loc="upper right" if ax is ax_loss else "lower right")  # "best" searches: slow
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.12, top=0.9, wspace=0.22)  # fixed: tight_layout doubles a draw
     write_figure(path, fig)

@@ -65,6 +65,9 @@ LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "l
                "heldout_psnr_iterate", "probe_psnr", "eval_s", "data_wait_ms"]
 EVALUATION_COLUMNS = ["heldout_psnr", "heldout_psnr_iterate", "probe_psnr", "eval_s"]  # "" in rows without one
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
+# train_log.png is redrawn at the start, at each full held-out evaluation (the end's included), and at a probe when
+# this long has passed since the last draw: a draw costs more than a probe (benchmarks/NOTES.md, "Workflow").
+REDRAW_S = 120.0
 class FitDiverged(ValueError):
     """The fit's loss or weights became NaN or infinite: there is no avatar to write."""
 
@@ -374,9 +377,12 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
         probe = Probe(capture, model, source, fit_cfg.probe_views, fit_cfg.probe_scale) if fit_cfg.probe_every else None
 
+        last_draw = -math.inf
+
         def evaluate_held_out(row: dict, full: bool, probing: bool, shown: list[dict]) -> float:
-            """The held-out evaluations due into `row`, then train_log.png redrawn from `shown` (to watch the fit);
-            returns the seconds both took, also the row's eval_s."""
+            """The held-out evaluations due into `row`, then train_log.png redrawn from `shown` (to watch the fit)
+            where due (REDRAW_S); returns the seconds both took, also the row's eval_s."""
+            nonlocal last_draw
             t0 = time.perf_counter()
             averaged = average is not None and average.started
             if full and averaged:
@@ -386,7 +392,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                     row["heldout_psnr"] = held_out.psnr(model, raster)
                 if probing:
                     row["probe_psnr"] = probe.psnr(model, raster)
-            plot_train_log(output_dir / "train_log.png", shown, str(output_dir))
+            if full or time.perf_counter() - last_draw >= REDRAW_S:
+                plot_train_log(output_dir / "train_log.png", shown, str(output_dir))
+                last_draw = time.perf_counter()
             row["eval_s"] = round(time.perf_counter() - t0, 3)
             return row["eval_s"]
 
@@ -491,6 +499,5 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         start_grid_smoothing()
     with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
         checkpoint(avatar_path, iteration, wall_before + time.perf_counter() - started)
-    plot_train_log(output_dir / "train_log.png", rows, str(output_dir))
     state_path.unlink(missing_ok=True)
     return avatar_path
