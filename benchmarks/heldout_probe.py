@@ -3,12 +3,14 @@ train_log.png, each timed in this process on a fitted avatar, times how often th
 
 Schedules from the preset (pig.avatar.training.evaluations_due): `after` is the preset as it is; `before` the same
 without probes and with the full evaluation every `--before-eval-every` iterations (900: the default run before
-probes). A row of the fit's train log is drawn at each evaluation, so the redraws count once per evaluated row
-(the start's and the end's draws are outside the fit's timed loop but inside its rule). Also the PSNR of each, to
-show what the probe reads against the full evaluation.
+probes). Redraws: before probes, at every evaluated row and once more after the fit; now at the start, at full
+evaluations and at probes at least REDRAW_S apart, counted for a fit of `--fit-seconds` at an even pace (the start's
+and the end's draws are outside the fit's timed loop but inside its rule). Also the PSNR of each, to show what the
+probe reads against the full evaluation.
 
     python benchmarks/heldout_probe.py --capture results/synthetic/subject00/capture \
-        --avatar results/synthetic/subject00/pig/avatar.pt [--preset cpu-demo] [--repeats 5] [--threads 2]
+        --avatar results/synthetic/subject00/pig/avatar.pt [--preset cpu-demo] [--repeats 5] [--threads 2] \
+        [--fit-seconds 400]
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ from pig.avatar.checkpoint import load_avatar
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.probe import Probe
 from pig.avatar.train_plot import plot_train_log
-from pig.avatar.training import HeldOut, evaluations_due
+from pig.avatar.training import REDRAW_S, HeldOut, evaluations_due
 from pig.config import load_preset, load_section
 from pig.data.capture import Capture
 from pig.render.api import RasterizerConfig
@@ -44,10 +46,17 @@ def timed(call, repeats: int) -> tuple[float, object]:
     return statistics.median(times), result
 
 
-def schedule(cfg: FitConfig) -> tuple[int, int, int]:
-    """(full evaluations, probes, rows evaluated) over a whole fit with `cfg`, the start included."""
+def schedule(cfg: FitConfig, fit_seconds: float, throttled: bool) -> tuple[int, int, int]:
+    """(full evaluations, probes, redraws of train_log.png) over a whole fit with `cfg`, the start included."""
     due = [evaluations_due(cfg, i) for i in range(cfg.iterations + 1)]
-    return sum(f for f, _ in due), sum(p for _, p in due), sum(f or p for f, p in due)
+    if not throttled:
+        return sum(f for f, _ in due), sum(p for _, p in due), sum(f or p for f, p in due) + 1
+    redraws, last = 0, -float("inf")
+    for i, (full, probe) in enumerate(due):
+        now = fit_seconds * i / cfg.iterations
+        if full or (probe and now - last >= REDRAW_S):
+            redraws, last = redraws + 1, now
+    return sum(f for f, _ in due), sum(p for _, p in due), redraws
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--before-eval-every", type=int, default=900)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--fit-seconds", type=float, default=400.0, help="the fit's wall time, for the redraw count")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     preset = load_preset(args.preset)
@@ -83,9 +93,9 @@ def main(argv: list[str] | None = None) -> int:
           f"1/{cfg.probe_scale} over their mask boxes, PSNR {probe_psnr:.3f} dB", file=sys.stderr)
     print("| schedule | full evaluations | probes | redraws | full s | probe s | redraw s | total s |\n"
           "|---|---|---|---|---|---|---|---|")
-    for name, c in ((f"before (eval_every {before.eval_every}, no probes)", before),
-                    (f"after (eval_every {cfg.eval_every}, probe_every {cfg.probe_every})", cfg)):
-        full, probes, redraws = schedule(c)
+    for name, c, throttled in ((f"before (eval_every {before.eval_every}, no probes)", before, False),
+                               (f"after (eval_every {cfg.eval_every}, probe_every {cfg.probe_every})", cfg, True)):
+        full, probes, redraws = schedule(c, args.fit_seconds, throttled)
         total = full * full_s + probes * probe_s + redraws * plot_s
         print(f"| {name} | {full} | {probes} | {redraws} | {full_s:.3f} | {probe_s:.3f} | {plot_s:.3f} | {total:.2f} |")
     return 0

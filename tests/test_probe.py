@@ -126,13 +126,20 @@ def _preset(tmp_path, **fit):
 
 
 @pytest.mark.slow
-def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_path, capsys):
+def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_path, capsys, monkeypatch):
+    from pig.avatar import training
     from pig.avatar.training import fit
 
     preset = _preset(tmp_path, iterations=12, eval_every=6, probe_every=5, probe_views=2, probe_scale=2,
                      checkpoint_minutes=0.0)
     cfg = load_section(load_preset(preset), "fit", FitConfig)
+    drawn, plot = [], training.plot_train_log
+    monkeypatch.setattr(training, "plot_train_log",
+                        lambda path, rows, title="": (drawn.append(rows[-1]["iteration"]), plot(path, rows, title)))
+    monkeypatch.setattr(training, "REDRAW_S", 1e9)  # probes never due a redraw: the start and full evaluations are
     fit(small_capture, tmp_path / "full", preset)
+    assert drawn == [0, 6, 12]
+    monkeypatch.undo()
     log = pd.read_csv(tmp_path / "full" / "train_log.csv")
     assert log["iteration"][log["probe_psnr"].notna()].tolist() == [i for i in range(13) if evaluations_due(cfg, i)[1]] \
         == [0, 5, 10, 12]

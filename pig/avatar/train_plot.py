@@ -47,9 +47,9 @@ def plot_train_log(path: Path, rows: list[dict], title: str = "") -> None:
         x, y = _series(rows, key)
         if len(x) and (y > 0).any():
             bx, by = binned(x, y)
-            ax_loss.plot(bx, by, lw=1, label=label + (" (binned means)" if len(bx) < len(x) else ""))
+            ax_loss.plot(bx, by, lw=1, label=label)
     ax_loss.set_yscale("log")
-    ax_loss.set_ylabel("training loss, mean of the logged iterations")
+    ax_loss.set_ylabel(f"training loss (unitless), binned into <= {BINS} means")
     for key, (label, line, marker) in PSNRS.items():
         x, y = _series(rows, key)
         if len(x):
