@@ -20,9 +20,9 @@ def test_default_run_has_at_least_ten_held_out_points():
     due = [evaluations_due(cfg, i) for i in range(cfg.iterations + 1)]
     probes = [i for i, (_, probe) in enumerate(due) if probe]
     full = [i for i, (whole, _) in enumerate(due) if whole]
+    assert len(probes) >= 10
     assert probes == sorted(set(range(0, cfg.iterations + 1, cfg.probe_every)) | {cfg.iterations})
     assert full == sorted(set(range(cfg.eval_every, cfg.iterations + 1, cfg.eval_every)) | {cfg.iterations})
-    assert len(probes) >= 10
 
 
 def test_paper_preset_does_not_probe():
