@@ -84,17 +84,18 @@ def test_fit_prints_progress_writes_tensorboard_and_redraws_the_plot(small_captu
     from pig.avatar import training
 
     drawn = []
-    plot = training._plot_log
-    monkeypatch.setattr(training, "_plot_log", lambda path, rows: (drawn.append(len(rows)), plot(path, rows)))
+    plot = training.plot_train_log
+    monkeypatch.setattr(training, "plot_train_log",
+                        lambda path, rows, title="": (drawn.append(len(rows)), plot(path, rows, title)))
     out = tmp_path / "pig"
     preset = _preset(tmp_path, iterations=4, eval_every=2, checkpoint_minutes=1e6)
     training.fit(small_capture, out, preset, progress_s=1e6, tensorboard=True)
     log = pd.read_csv(out / "train_log.csv")
     evaluated = log[log["heldout_psnr"].notna()]
     assert evaluated["iteration"].tolist() == [0, 2, 4]
-    # The plot: drawn at each evaluation (with the rows up to it) and once more at the end.
+    # The plot: drawn at each evaluation (with the rows up to it), the last one the end's with every row.
     rows_at = [int((log["iteration"] <= i).sum()) for i in evaluated["iteration"]]
-    assert drawn == rows_at + [len(log)]
+    assert drawn == rows_at and rows_at[-1] == len(log)
     # The lines: one at the start and one at each evaluation, the last one the end's (the interval never passes).
     lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith(f"fit {out}: ")]
     assert len(lines) == 3

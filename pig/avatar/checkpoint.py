@@ -29,8 +29,8 @@ TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteratio
 # Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading (and
 # whether its threads compute the loss's band: the same pixels), CPU threads, memory bands, replaying the same CG
 # kernels as a CUDA graph.
-FREE_SETTINGS = {"fit": {"iterations", "eval_every", "checkpoint_minutes", "view_cache", "prefetch", "loader_workers", "log_every",
-                         "host_band", "cpu_threads"},
+FREE_SETTINGS = {"fit": {"iterations", "eval_every", "probe_every", "checkpoint_minutes", "view_cache", "prefetch",
+                         "loader_workers", "log_every", "host_band", "cpu_threads"},
                  "rasterizer": {"max_pairs"}, "precond": {"cg_graphs"}}
 SPEC_SECTIONS = ("avatar", "field", "precond")  # preset sections recorded in the spec
 

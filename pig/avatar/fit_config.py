@@ -56,6 +56,13 @@ class FitConfig:
     sigma_body: float = 0.0  # robustness study: Gaussian noise on pose (radians) and shape of the input body
     eval_every: Annotated[int, Bounds(ge=1)] = 1000  # held-out novel-view PSNR every this many iterations (and at the end)
     eval_frames: int = 4  # training frames rendered from the novel-view cameras
+    # Probes: a cheap held-out PSNR for the error-against-time curve, every `probe_every` iterations and at the start
+    # and end (0: off). `probe_views` novel-view (frame, camera) pairs from the middle training frame on, each over
+    # its mask box only, rendered at 1/`probe_scale` the resolution against the truth's box-filtered pixels. With
+    # probes on, the start gets the probe alone: the full evaluation runs at multiples of `eval_every` and at the end.
+    probe_every: int = 0
+    probe_views: int = 2
+    probe_scale: int = 2
     checkpoint_minutes: float = 5.0
     # Stop after this many seconds of training (the held-out evaluations not counted), before `iterations`
     # if it comes first: the fixed-budget runs of benchmarks/fit_gpu.py. None: no limit.
@@ -91,7 +98,8 @@ class FitConfig:
 
     def __post_init__(self):
         for name, least in (("view_cache", 0), ("prefetch", 0), ("loader_workers", 1), ("seed", 0), ("log_every", 1),
-                            ("lr_warmup", 0), ("lpips_views", 0)):
+                            ("lr_warmup", 0), ("lpips_views", 0), ("probe_every", 0), ("probe_views", 1),
+                            ("probe_scale", 1)):
             if getattr(self, name) < least:
                 raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
         if self.precision not in PRECISIONS:

@@ -1,7 +1,8 @@
 """What a running fit tells: a progress line every few seconds and, on request, TensorBoard scalars.
 
 The line (stderr, so a rule's log and, through the workflow's `tee`, the console) states the iteration, the mean
-loss (Eq. 15) of the last logged row, the latest held-out PSNR and an estimate of the time left:
+loss (Eq. 15) of the last logged row, the latest held-out PSNR (and probe PSNR, where the fit probes;
+pig.avatar.probe) and an estimate of the time left:
     fit results/synthetic/subject00/pig: iteration 1200/4000 (30.0 %), loss 0.1234, held-out PSNR 24.31 dB
     (iteration 1000), 2.1 it/s, 0:22:13 left
 The time left extrapolates this run's wall time (held-out evaluations included) over the part of the run done,
@@ -21,7 +22,8 @@ from pig.progress import quiet
 
 TENSORBOARD_DIR = "tensorboard"
 SCALARS = {"loss": "train/loss", "l1": "train/l1", "ssim": "train/ssim", "lpips": "train/lpips",
-           "heldout_psnr": "heldout/psnr", "heldout_psnr_iterate": "heldout/psnr_iterate"}
+           "heldout_psnr": "heldout/psnr", "heldout_psnr_iterate": "heldout/psnr_iterate",
+           "probe_psnr": "heldout/probe_psnr"}
 
 
 def tensorboard_writer(folder: Path):
@@ -45,7 +47,7 @@ class FitProgress:
         self.stream, self.clock = stream, clock
         self.started = self.last_line = clock()
         self.start_iteration, self.start_done = start, start / total
-        self.loss = self.psnr = self.psnr_iteration = self.printed = None
+        self.loss = self.psnr = self.psnr_iteration = self.probe = self.probe_iteration = self.printed = None
 
     def record(self, row: dict) -> None:
         """Take a logged row of train_log.csv (pig.avatar.training.LOG_COLUMNS; "" where a value is absent)."""
@@ -53,6 +55,8 @@ class FitProgress:
             self.loss = float(row["loss"])
         if row.get("heldout_psnr", "") != "":
             self.psnr, self.psnr_iteration = float(row["heldout_psnr"]), int(row["iteration"])
+        if row.get("probe_psnr", "") != "":
+            self.probe, self.probe_iteration = float(row["probe_psnr"]), int(row["iteration"])
         if self.writer is not None:
             for key, tag in SCALARS.items():
                 if row.get(key, "") != "":
@@ -83,6 +87,8 @@ class FitProgress:
         parts.append(f"loss {self.loss:.4g}" if self.loss is not None else "loss -")
         parts.append(f"held-out PSNR {self.psnr:.2f} dB (iteration {self.psnr_iteration})" if self.psnr is not None
                      else "held-out PSNR -")
+        if self.probe is not None:
+            parts.append(f"probe PSNR {self.probe:.2f} dB (iteration {self.probe_iteration})")
         iterations = iteration - self.start_iteration
         if iterations > 0 and elapsed > 0:
             parts.append(f"{iterations / elapsed:.3g} it/s")

@@ -38,6 +38,8 @@ from pig.avatar.config import AvatarConfig
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_writer
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
+from pig.avatar.probe import Probe
+from pig.avatar.train_plot import plot_train_log
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.config import DEFAULT_PRESET, ConfigError, load_preset, load_section, resolve_device
@@ -49,17 +51,23 @@ from pig.metrics.lpips import TrainingLPIPS
 from pig.metrics.psnr import psnr
 from pig.progress import LOG_INTERVAL_S
 from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
-from pig._io import write_figure, write_text
+from pig._io import write_text
 from pig._outputs import claim_files, output_lock
 
 # lpips_term: the LPIPS term's state on every row (pig.avatar.losses.LPIPS_STATES; "on" is the paper's loss).
 # train_s: wall time less this run's held-out evaluations (what the time budget counts; the x axis of the
 # error-against-time plots); logs written before it existed lack the column. heldout_psnr: of the weight average
 # once it has started (fit.average_decay), else of the weights of that iteration; heldout_psnr_iterate: of that
-# iteration's own weights while an average is evaluated (what the average buys), else empty.
+# iteration's own weights while an average is evaluated (what the average buys), else empty. probe_psnr: the
+# cheap held-out PSNR of pig.avatar.probe (fit.probe_every; mask boxes, not frames: lower than heldout_psnr), of the
+# weights heldout_psnr is of. eval_s: seconds this row's held-out evaluations and the redraw of train_log.png took.
 LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr",
-               "heldout_psnr_iterate", "data_wait_ms"]
+               "heldout_psnr_iterate", "probe_psnr", "eval_s", "data_wait_ms"]
+EVALUATION_COLUMNS = ["heldout_psnr", "heldout_psnr_iterate", "probe_psnr", "eval_s"]  # "" in rows without one
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
+# train_log.png is redrawn at the start, at each full held-out evaluation (the end's included), and at a probe when
+# this long has passed since the last draw: a draw costs more than a probe (benchmarks/NOTES.md, "Workflow").
+REDRAW_S = 120.0
 class FitDiverged(ValueError):
     """The fit's loss or weights became NaN or infinite: there is no avatar to write."""
 
@@ -89,33 +97,23 @@ def perturb_params(params: SmplxParams, sigma: float, seed: int) -> SmplxParams:
     return SmplxParams(pose, betas, params.expression.copy(), params.transl.copy())
 
 
+def evaluations_due(cfg: FitConfig, iteration: int) -> tuple[bool, bool]:
+    """(the full held-out evaluation, the probe) due after `iteration` of a fit with `cfg`, 0 being the start: the
+    full one at multiples of `eval_every` and at the end, and at the start unless the fit probes; the probe at
+    multiples of `probe_every` (the start included) and at the end. A resumed fit keeps the same iterations."""
+    last = iteration == cfg.iterations
+    probe = cfg.probe_every > 0 and (iteration % cfg.probe_every == 0 or last)
+    if iteration == 0:
+        return not cfg.probe_every, probe
+    return iteration % cfg.eval_every == 0 or last, probe
+
+
 def _write_log(path: Path, rows: list[dict]) -> None:
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=LOG_COLUMNS, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     write_text(path, buffer.getvalue())
-
-
-def _plot_log(path: Path, rows: list[dict]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax_loss, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
-    steps = [r for r in rows if r["loss"] != ""]
-    ax_loss.semilogy([r["iteration"] for r in steps], [r["loss"] for r in steps], lw=0.5)
-    ax_loss.set_xlabel("iteration")
-    ax_loss.set_ylabel("training loss (Eq. 15)")
-    evals = [r for r in rows if r["heldout_psnr"] != ""]
-    ax_psnr.plot([r["wall_s"] for r in evals], [r["heldout_psnr"] for r in evals], marker="o")
-    ax_psnr.set_xlabel("wall time [s]")
-    ax_psnr.set_ylabel("held-out novel-view PSNR [dB] (finest LOD)")
-    for ax in (ax_loss, ax_psnr):
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    write_figure(path, fig, dpi=100)
 
 
 class HeldOut:
@@ -377,18 +375,33 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
+        probe = Probe(capture, model, source, fit_cfg.probe_views, fit_cfg.probe_scale) if fit_cfg.probe_every else None
 
-        def evaluate_held_out() -> dict:
-            if average is None or not average.started:
-                return {"heldout_psnr": held_out.psnr(model, raster), "heldout_psnr_iterate": ""}
-            iterate = held_out.psnr(model, raster)
-            with average.applied():
-                return {"heldout_psnr": held_out.psnr(model, raster), "heldout_psnr_iterate": iterate}
+        last_draw = -math.inf
+
+        def evaluate_held_out(row: dict, full: bool, probing: bool, shown: list[dict]) -> float:
+            """The held-out evaluations due into `row`, then train_log.png redrawn from `shown` (to watch the fit)
+            where due (REDRAW_S); returns the seconds both took, also the row's eval_s."""
+            nonlocal last_draw
+            t0 = time.perf_counter()
+            averaged = average is not None and average.started
+            if full and averaged:
+                row["heldout_psnr_iterate"] = held_out.psnr(model, raster)
+            with average.applied() if averaged else nullcontext():
+                if full:
+                    row["heldout_psnr"] = held_out.psnr(model, raster)
+                if probing:
+                    row["probe_psnr"] = probe.psnr(model, raster)
+            if full or time.perf_counter() - last_draw >= REDRAW_S:
+                plot_train_log(output_dir / "train_log.png", shown, str(output_dir))
+                last_draw = time.perf_counter()
+            row["eval_s"] = round(time.perf_counter() - t0, 3)
+            return row["eval_s"]
 
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "train_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
-                     "lpips_term": lpips_record["state"], **evaluate_held_out(), "data_wait_ms": ""}]
-            _plot_log(output_dir / "train_log.png", rows)
+                     "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""), "data_wait_ms": ""}]
+            evaluate_held_out(rows[0], *evaluations_due(fit_cfg, 0), rows)
             report.record(rows[0])
             report.print_line(0, 0.0)
 
@@ -407,7 +420,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             now = time.perf_counter()
             row = {"iteration": iteration, "wall_s": round(wall_before + now - started, 3),
                    "train_s": round(wall_before + now - started - evaluating, 3), "lod": lod,
-                   "lpips_term": lpips_record["state"], "heldout_psnr": "", "heldout_psnr_iterate": "",
+                   "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""),
                    "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3),
                    **{key: window[name].item() / count if name in window else "" for key, name in
                       (("loss", "total"), ("l1", "l1"), ("ssim", "ssim"), ("lpips", "lpips"))}}
@@ -451,17 +464,15 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 window[key] = window.get(key, 0) + value.detach()
 
             iteration = i + 1
-            evaluate = iteration % fit_cfg.eval_every == 0 or iteration == fit_cfg.iterations
+            full, probing = evaluations_due(fit_cfg, iteration)
+            evaluate = full or probing
             save = iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes
             if evaluate or save or iteration % fit_cfg.log_every == 0:
                 row = window_row(iteration, batch.lod)
                 if not math.isfinite(row["loss"]):  # read back anyway: a diverged fit stops here, not at the end
                     raise _diverged(f"the training loss is {row['loss']}", iteration, state_path)
                 if evaluate:
-                    t0 = time.perf_counter()
-                    row.update(evaluate_held_out())
-                    _plot_log(output_dir / "train_log.png", rows + [row])  # to watch the fit: redrawn at each evaluation
-                    evaluating += time.perf_counter() - t0
+                    evaluating += evaluate_held_out(row, full, probing, rows + [row])
                 rows.append(row)
                 report.record(row)
             report.step(iteration, min(fraction_done(iteration)[1], 1.0), evaluate)
@@ -475,7 +486,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
             rows.append(window_row(iteration, ""))
         if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
-            rows[-1].update(evaluate_held_out())
+            evaluate_held_out(rows[-1], True, probe is not None and rows[-1].get("probe_psnr", "") == "", rows)
             report.record(rows[-1])
         report.finish(iteration)
     if waits:
@@ -488,6 +499,5 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         start_grid_smoothing()
     with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
         checkpoint(avatar_path, iteration, wall_before + time.perf_counter() - started)
-    _plot_log(output_dir / "train_log.png", rows)
     state_path.unlink(missing_ok=True)
     return avatar_path

@@ -1,8 +1,8 @@
 """Fit stage: optimise an avatar on the train split of a preprocessed capture; resumable, logged.
 
-Writes avatar.pt, train_log.csv and train_log.png (redrawn at each held-out evaluation) into --output, a progress
-line (iteration, loss, held-out PSNR, time left) to stderr every --progress-seconds, and with --tensorboard the
-scalars for TensorBoard; the optimisation itself is pig.avatar.training.fit (Section 3.5, Eq. 15).
+Writes avatar.pt, train_log.csv and train_log.png (redrawn at full held-out evaluations and probes) into --output,
+a progress line (iteration, loss, held-out PSNR, time left) to stderr every --progress-seconds, and with
+--tensorboard the scalars for TensorBoard; the optimisation itself is pig.avatar.training.fit (Section 3.5, Eq. 15).
 """
 from __future__ import annotations
 

@@ -244,7 +244,8 @@ def lod_table(summaries: pd.DataFrame, variants: list[str], split: str = "novel_
 
 def read_train_log(path: Path) -> pd.DataFrame:
     """Training time and held-out PSNR of one train_log.csv, checked: numbers, both columns present. The time is
-    `train_s` (held-out evaluations left out); logs older than that column give `wall_s` in its place."""
+    `train_s` (held-out evaluations left out); logs older than that column give `wall_s` in its place. `probe_psnr`
+    (pig.avatar.probe) comes along where the log has it."""
     columns = ["wall_s", "heldout_psnr"]
     try:
         log = pd.read_csv(path)
@@ -255,26 +256,38 @@ def read_train_log(path: Path) -> pd.DataFrame:
     try:
         parsed = log[columns].apply(pd.to_numeric)
         parsed["train_s"] = pd.to_numeric(log["train_s"]) if "train_s" in log.columns else parsed["wall_s"]
+        if "probe_psnr" in log.columns:
+            parsed["probe_psnr"] = pd.to_numeric(log["probe_psnr"])
         return parsed
     except (ValueError, TypeError) as err:
-        raise ValueError(f"{path}: train log has a non-numeric wall_s, train_s or heldout_psnr ({err})") from None
+        raise ValueError(f"{path}: train log has a non-numeric wall_s, train_s, heldout_psnr or probe_psnr "
+                         f"({err})") from None
 
 
 def training_plot(logs: dict[str, dict[Path, pd.DataFrame]], path: Path, title: str) -> None:
     """Held-out PSNR against training wall time, one line per (variant, subject), from `read_train_log`: a colour
-    per variant (distinct for up to 20), a line style per subject."""
+    per variant (distinct for up to 20), a line style per subject. A fit that probed (fit.probe_every) is drawn by
+    its probes, many cheap points, and its full evaluations as unjoined squares; else by its full evaluations."""
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
     colours = plt.get_cmap("tab10" if len(logs) <= 10 else "tab20")
     subjects = sorted({Path(file).parts[-3] for files in logs.values() for file in files})
     styles = ["-", "--", ":", "-."]
+    probed = False
     for index, (variant, files) in enumerate(logs.items()):
         for file, log in files.items():
-            log = log.dropna(subset=["heldout_psnr"])
             subject = Path(file).parts[-3]
-            ax.plot(log["train_s"], log["heldout_psnr"], marker="o", markersize=3, color=colours(index % colours.N),
-                    linestyle=styles[subjects.index(subject) % len(styles)], label=f"{variant} ({subject})")
+            colour = colours(index % colours.N)
+            probes = log.dropna(subset=["probe_psnr"]) if "probe_psnr" in log.columns else log.iloc[:0]
+            full = log.dropna(subset=["heldout_psnr"])
+            probed = probed or len(probes) > 0
+            line = probes if len(probes) else full
+            ax.plot(line["train_s"], line["probe_psnr" if len(probes) else "heldout_psnr"], marker="o", markersize=3,
+                    color=colour, linestyle=styles[subjects.index(subject) % len(styles)],
+                    label=f"{variant} ({subject})")
+            if len(probes):
+                ax.plot(full["train_s"], full["heldout_psnr"], marker="s", markersize=5, linestyle="none", color=colour)
     ax.set_xlabel("training wall time, held-out evaluations left out [s]")
-    ax.set_ylabel("held-out novel-view PSNR [dB]")
+    ax.set_ylabel("held-out novel-view PSNR [dB]" + ("\nlines: probes over mask boxes; squares: whole frames" * probed))
     ax.set_title(title)
     ax.grid(alpha=0.3)
     if ax.get_lines():
