@@ -40,7 +40,7 @@ def turntable_seconds(checkpoint: Path, preset: str, repeats: int) -> None:
     """Wall time of `pig animate` with the preview clip's options (workflow/rules/common.smk), start to end."""
     options = next(line.split("=", 1)[1].strip().strip('"') for line in
                    (REPO / "workflow" / "rules" / "common.smk").read_text().splitlines() if line.startswith("PREVIEW_OPTIONS"))
-    print(f"| run | wall s | CPU s (user + sys) | load average (1 min) |\n|---|---|---|---|")
+    print("| run | wall s | CPU s (user + sys) | load average (1 min) |\n|---|---|---|---|")
     for run in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
             load, cpu_before, start = os.getloadavg()[0], _children_cpu(), time.perf_counter()
