@@ -1,5 +1,5 @@
 """The `test` preset's whole workflow on a real one-node Slurm cluster on 127.0.0.1, through
-`--workflow-profile slurm` (workflow/profiles/slurm, found as profiles/slurm beside the Snakefile; the README's
+`--workflow-profile slurm` (workflow/profiles/slurm, found as profiles/slurm beside the Snakefile; docs/cluster.md's
 command) and snakemake-executor-plugin-slurm.
 
 The cluster is Debian's slurm-wlm and munge, started here as root: munged, slurmctld and slurmd in a temporary

@@ -93,7 +93,7 @@ class FitConfig:
     lpips_crop_sliced: bool = False
     # torch.use_deterministic_algorithms on a GPU fit (a CPU fit always runs so: bit-identical at a fixed thread
     # count). It covers torch's own kernels only, with a warning for those it has no deterministic form of
-    # (grid_sample's backward); gsplat's backward sums in a nondeterministic order regardless (README).
+    # (grid_sample's backward); gsplat's backward sums in a nondeterministic order regardless (docs/gpu.md).
     deterministic: bool = False
 
     def __post_init__(self):
