@@ -1,7 +1,9 @@
 """Render storage (pig.data.render_store): lossless chunks, resume after a kill, the capture they were rendered for."""
+import io
 import json
 import re
 import shutil
+import zipfile
 
 import numpy as np
 import pytest
@@ -69,10 +71,18 @@ def test_a_cut_short_or_foreign_chunk_is_refused_by_name(tmp_path, rng):
     encoder.close()
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])
-    with pytest.raises(CaptureError, match=rf"{path}: not a readable .npz"):
+    with pytest.raises(CaptureError, match=rf"{path}: not a valid npz archive"):
         RenderReader(tmp_path).image("cam00", 0)
     np.savez(path, frames=np.arange(2))
     with pytest.raises(CaptureError, match=rf"{path}: missing \['offsets', 'data', 'codec'\]"):
+        RenderReader(tmp_path).image("cam00", 0)
+    # A member declaring 8 TB is refused from its header, before anything is allocated or read.
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": (8 * 10 ** 12,)})
+    np.savez(path, frames=np.arange(2), offsets=np.array([0, 1, 2]), codec=np.array("png"))
+    with zipfile.ZipFile(path, "a") as archive:
+        archive.writestr("data.npy", header.getvalue() + b"\0" * 16)
+    with pytest.raises(CaptureError, match=rf"{path}: member 'data' declares shape \(8000000000000,\) of uint8"):
         RenderReader(tmp_path).image("cam00", 0)
 
 

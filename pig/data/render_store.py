@@ -9,7 +9,6 @@ render stage's `--every-view` option) reads the same way.
 from __future__ import annotations
 
 import json
-import zipfile
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -17,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pig.body.npz import read_npz
 from pig.data.images import decode_image, read_png
 from pig.data.raw import CaptureError
 from pig._io import atomic_path, write_json
@@ -135,14 +135,11 @@ class RenderReader:
         return self._index[camera]
 
     def _load(self, path: Path) -> tuple[Path, dict[int, int], np.ndarray, np.ndarray, str]:
-        try:
-            with np.load(path, allow_pickle=False) as arrays:
-                missing = [key for key in CHUNK_KEYS if key not in arrays.files]
-                if missing:
-                    raise CaptureError(f"{path}: missing {missing}; expected {CHUNK_EXPECTED}")
-                frames, offsets, data, codec = (arrays[key] for key in CHUNK_KEYS)
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-            raise CaptureError(f"{path}: not a readable .npz ({err}); expected {CHUNK_EXPECTED}") from None
+        arrays = read_npz(path, CaptureError, CHUNK_EXPECTED, keys=CHUNK_KEYS)  # bounded: no member read past 1 GiB
+        missing = [key for key in CHUNK_KEYS if key not in arrays]
+        if missing:
+            raise CaptureError(f"{path}: missing {missing}; expected {CHUNK_EXPECTED}")
+        frames, offsets, data, codec = (arrays[key] for key in CHUNK_KEYS)
         codec = str(codec)
         if (codec not in CODECS or frames.ndim != 1 or offsets.shape != (len(frames) + 1,) or data.dtype != np.uint8
                 or offsets[0] != 0 or offsets[-1] != len(data) or np.any(np.diff(offsets) <= 0)):
