@@ -42,6 +42,8 @@ def test_column_kind_by_name(column, kind):
     (0, "splats", "0"), (999, "splats", "999"), (12500, "splats", "12.5k"), (25000, "splats", "25k"),
     (100000, "splats", "100k"), (16384, "splats", "16.4k"), (361000, "splats", "361k"), (1234567, "splats", "1.23M"),
     ("1/4", "text", "1/4"),
+    # Past the decimal module's default 28 digits (a blown-up FID or drift): printed whole, not an error.
+    (1e30, "fid", "1" + "0" * 30 + ".0"), (-2.5e25, "number", "-25" + "0" * 24 + ".000"),
 ])
 def test_rounding_per_column_kind(value, kind, expected):
     assert format_value(value, kind) == expected

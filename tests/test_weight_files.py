@@ -29,6 +29,12 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.send_header("Content-Length", str(len(body)))
             self.end_headers()
             self.wfile.write(body)
+        elif self.path == "/endless.pth":  # no Content-Length, and far more than the published size
+            self.send_response(200)
+            self.end_headers()
+            for _ in range(64):
+                self.wfile.write(OTHER * 20)
+            self.close_connection = True
         elif self.path == "/cut.pth":  # promises the whole file, sends a third, then closes
             self.send_response(200)
             self.send_header("Content-Length", str(len(GOOD)))
@@ -96,6 +102,13 @@ def test_a_404_is_reported_with_the_url(server, hub):
 def test_an_interrupted_transfer_keeps_nothing(server, hub):
     with pytest.raises(FetchError, match="cut off|failed after"):
         fetch(entry(server, "/cut.pth"), hub, report=lambda line: None)
+    assert leftovers(hub) == []
+
+
+def test_a_download_past_the_published_size_is_stopped(server, hub):
+    # The server sends 6.4 MB with no length; the file is published at len(GOOD) bytes: stopped there, not at the end.
+    with pytest.raises(FetchError, match=rf"sent more than the {len(GOOD):,} bytes of the published file; stopped"):
+        fetch(entry(server, "/endless.pth"), hub, report=lambda line: None)
     assert leftovers(hub) == []
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import html
 import math
 from dataclasses import dataclass
-from decimal import ROUND_HALF_UP, Decimal
+from decimal import ROUND_HALF_UP, Decimal, localcontext
 from pathlib import Path
 
 import pandas as pd
@@ -59,7 +59,8 @@ def format_value(value, kind: str) -> str:
     if kind == "splats":
         return format_count(value)
     step = Decimal(1).scaleb(-DECIMALS[kind])
-    text = str(Decimal(repr(float(value))).quantize(step, rounding=ROUND_HALF_UP))
+    with localcontext(prec=400):  # enough digits for any float64 (1e308 at 3 decimals), the default 28 is not
+        text = str(Decimal(repr(float(value))).quantize(step, rounding=ROUND_HALF_UP))
     return text[1:] if text.startswith("-") and not text.strip("-0.") else text
 
 

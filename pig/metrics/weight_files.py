@@ -160,24 +160,30 @@ def fetch(entry: WeightFile, dest_dir: Path, opener: Callable = urllib.request.u
         try:
             with opener(entry.url, timeout=timeout) as response, open(tmp, "wb") as out:
                 length = response.headers.get("Content-Length")
-                expected = int(length) if length is not None else entry.size
+                length = int(length) if length is not None and length.strip().isdigit() else None
+                expected = length if length is not None else entry.size
                 report(f"weights: fetching {entry.filename} ({_megabytes(expected)}) from {entry.url}; its SHA-256 "
                        f"from {entry.source}")
                 with progress_bar(total=expected, unit="B", unit_scale=True, desc=entry.name, leave=False) as bar:
                     for block in iter(lambda: response.read(CHUNK), b""):
+                        received += len(block)
+                        if entry.size is not None and received > entry.size:  # a server that never stops sending
+                            raise FetchError(f"{entry.filename}: download from {entry.url} sent more than the "
+                                             f"{entry.size:,} bytes of the published file; stopped, nothing was kept")
                         digest.update(block)
                         out.write(block)
-                        received += len(block)
                         bar.update(len(block))
+        except FetchError:
+            raise
         except urllib.error.HTTPError as err:
             raise FetchError(f"{entry.filename}: HTTP {err.code} ({err.reason}) from {entry.url}") from None
         except (urllib.error.URLError, OSError, http.client.HTTPException) as err:  # refused, unreachable, cut off
             why = getattr(err, "reason", err)
             raise FetchError(f"{entry.filename}: download from {entry.url} failed after {received:,} bytes ({why})") \
                 from None
-        if length is not None and received != int(length):
+        if length is not None and received != length:
             raise FetchError(f"{entry.filename}: download from {entry.url} was cut off at {received:,} of "
-                             f"{int(length):,} bytes; nothing was kept")
+                             f"{length:,} bytes; nothing was kept")
         if digest.hexdigest() != entry.sha256:
             raise FetchError(f"{entry.filename}: SHA-256 of the download from {entry.url} is {digest.hexdigest()}, "
                              f"expected {entry.sha256}; the download was deleted, nothing was kept")
