@@ -15,7 +15,6 @@ import functools
 import glob
 import importlib.metadata
 import importlib.util
-import json
 import os
 import re
 import shutil
@@ -28,9 +27,11 @@ from typing import Any
 from pig.avatar.config import AvatarConfig
 from pig.avatar.fit_config import FitConfig
 from pig.config import ConfigError, config_dirs, from_dict, load_section, load_yaml, named_config
+from pig.data.raw import CaptureError
 from pig.data.rectify import output_size
 from pig.data.splits import SplitConfig, make_split
 from pig.data.synthetic.config import SyntheticConfig
+from pig.data.thuman4 import IMAGE_SUFFIXES, read_calibration
 from pig.field.latent_grid import FieldConfig
 from pig.metrics.weight_files import LPIPS_FILES, by_name, status
 from pig.stages.evaluate import EvaluateConfig
@@ -167,7 +168,7 @@ def check_gsplat(gpu: bool) -> Check:
     if not gpu:
         state = "; ".join(failures) if failures else "CUDA extension not built"
         return Check("gsplat", "ok", f"{version}, {state}; not needed: this preset renders on the CPU")
-    nvcc, release = nvcc_version()
+    nvcc, _ = nvcc_version()
     folder = jit_folder()
     looked = f"looked in {folder}" if folder is not None else "torch has no CUDA build to compile it for"
     state = "; ".join(failures) if failures else f"CUDA extension not built ({looked})"
@@ -301,12 +302,12 @@ def nominal_geometry(preset: dict[str, Any], dataset: dict[str, Any]) -> Geometr
     subjects = dataset.get("subjects") or []
     root = Path(dataset.get("root", "")) / str(subjects[0]) if subjects else None
     if dataset.get("format") == "thuman4" and root is not None and (root / "calibration.json").is_file():
-        try:  # a file the reader would refuse gives no sizes here; preprocess names what is wrong with it
-            calibration = json.loads((root / "calibration.json").read_text())
-            cameras = {name: (int(cam["imgSize"][0]), int(cam["imgSize"][1])) for name, cam in calibration.items()}
+        try:  # a file the reader refuses gives no sizes here; preprocess names what is wrong with it
+            cameras = {name: (cam.width, cam.height) for name, cam in read_calibration(root / "calibration.json").items()}
             first = root / "images" / next(iter(cameras))
-            frames = sorted(int(p.stem) for p in first.glob("*.jpg")) if first.is_dir() else []
-        except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError, StopIteration):
+            frames = sorted(int(p.stem) for p in first.iterdir()
+                            if p.suffix.lower() in IMAGE_SUFFIXES and p.stem.isdigit()) if first.is_dir() else []
+        except (CaptureError, OSError):
             frames = []
         if frames:
             return Geometry(cameras, frames, f"{root}'s calibration and images")

@@ -217,21 +217,23 @@ def test_disk_estimate_against_measured_sizes():
 def test_disk_estimate_of_a_users_thuman4_layout_capture(tmp_path):
     """Sizes from the first subject's calibration.json and its images: 3 cameras x 8 frames at 200 x 100, two held
     out (novel_view_count) on the first 6 frames, the last 2 frames (novel_pose_fraction 0.25) on all three."""
-    import json
+    import os
 
-    root = tmp_path / "mine" / "s0"
-    (root / "images" / "c0").mkdir(parents=True)
-    for frame in range(8):
-        (root / "images" / "c0" / f"{frame:08d}.jpg").write_bytes(b"")
-    (root / "calibration.json").write_text(json.dumps({c: {"imgSize": [200, 100]} for c in ("c0", "c1", "c2")}))
-    dataset = {"name": "mine", "format": "thuman4", "root": str(tmp_path / "mine"), "subjects": ["s0", "s1"],
-               "split": {"novel_view_count": 2, "novel_pose_fraction": 0.25}}
-    estimate = doctor.estimate_disk(load_preset("paper"), dataset)
-    assert estimate.subjects == 2 and "calibration" in estimate.how
+    from thuman4_fixture import write_thuman4
+
     train, heldout, views = 1 * 6, 2 * 6 + 3 * 2, 1 * 6 + 2 * 6 + 3 * 2
     capture = 200 * 100 * (train * doctor.JPEG_BPP + heldout * doctor.PNG_BPP + views * doctor.MASK_BPP)
-    assert estimate.parts["capture"] == pytest.approx(doctor.MARGIN * capture, rel=1e-12)
-    (root / "calibration.json").write_text("{}")  # unreadable sizes: no estimate, not an error
+    for ext in ("jpg", "png"):  # the layout allows either
+        root = write_thuman4(tmp_path / ext / "s0", cameras=3, frames=8, width=200, height=100, ext=ext)
+        dataset = {"name": "mine", "format": "thuman4", "root": str(tmp_path / ext), "subjects": ["s0", "s1"],
+                   "split": {"novel_view_count": 2, "novel_pose_fraction": 0.25}}
+        estimate = doctor.estimate_disk(load_preset("paper"), dataset)
+        assert estimate.subjects == 2 and "calibration" in estimate.how
+        assert estimate.parts["capture"] == pytest.approx(doctor.MARGIN * capture, rel=1e-12)
+    (root / "calibration.json").write_text("{}")  # a calibration the reader refuses: no estimate, not an error
+    assert doctor.estimate_disk(load_preset("paper"), dataset) is None
+    (root / "calibration.json").unlink()
+    os.mkfifo(root / "calibration.json")  # never opened: a FIFO would block a reader that opens it
     assert doctor.estimate_disk(load_preset("paper"), dataset) is None
 
 
