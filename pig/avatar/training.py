@@ -55,12 +55,12 @@ from pig._io import write_text
 from pig._outputs import claim_files, output_lock
 
 # lpips_term: the LPIPS term's state on every row (pig.avatar.losses.LPIPS_STATES; "on" is the paper's loss).
-# train_s: wall time less this run's held-out evaluations (what the time budget counts; the x axis of the
-# error-against-time plots); logs written before it existed lack the column. heldout_psnr: of the weight average
-# once it has started (fit.average_decay), else of the weights of that iteration; heldout_psnr_iterate: of that
-# iteration's own weights while an average is evaluated (what the average buys), else empty. probe_psnr: the
-# cheap held-out PSNR of pig.avatar.probe (fit.probe_every; mask boxes, not frames: lower than heldout_psnr), of the
-# weights heldout_psnr is of. eval_s: seconds this row's held-out evaluations and the redraw of train_log.png took.
+# train_s: wall time less this run's held-out evaluations and train_log.png redraws (what the time budget counts; the x
+# axis of the error-against-time plots); logs written before it existed lack the column. heldout_psnr: of the weight
+# average once it has started (fit.average_decay), else of the weights of that iteration; heldout_psnr_iterate: of that
+# iteration's own weights while an average is evaluated (what the average buys), else empty. probe_psnr: the cheap
+# held-out PSNR of pig.avatar.probe (fit.probe_every; mask boxes, not frames: lower than heldout_psnr), of the weights
+# heldout_psnr is of. eval_s: seconds this row's held-out evaluations and the redraw of train_log.png took.
 LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr",
                "heldout_psnr_iterate", "probe_psnr", "eval_s", "data_wait_ms"]
 EVALUATION_COLUMNS = ["heldout_psnr", "heldout_psnr_iterate", "probe_psnr", "eval_s"]  # "" in rows without one

@@ -1,7 +1,7 @@
 # The metric networks' weight files (LPIPS, FID): the project's only network use, and only when asked for by name:
 #   snakemake --cores 1 fetch_weights
-# Without them the LPIPS and FID columns are n/a and the paper preset's fit has no LPIPS term (`pig weights` lists
-# what is there).
+# Without them the LPIPS and FID columns are n/a, and a run whose fits use the LPIPS term (the paper preset's) is
+# refused at its start (`pig weights` lists what is there).
 
 
 rule fetch_weights:
