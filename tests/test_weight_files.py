@@ -171,14 +171,7 @@ def test_hub_folder_is_torchs(env, monkeypatch):
     assert wf.hub_checkpoints() == Path(torch.hub.get_dir()) / "checkpoints"
 
 
-def test_the_table_names_the_files_the_metrics_load():
-    from pig.metrics.weights import INCEPTION_FILE, LPIPS_LINEAR_FILES, TORCHVISION_FILES
-
-    table = {f.name: f for f in wf.WEIGHT_FILES}
-    for net, (backbone, linear) in wf.LPIPS_FILES.items():
-        assert table[backbone].filename == TORCHVISION_FILES[net]
-        assert table[linear].filename == LPIPS_LINEAR_FILES[net]
-    assert table["inception"].filename == INCEPTION_FILE
+def test_the_table_names_the_published_files():
     for f in wf.WEIGHT_FILES:
         assert f.url.endswith("/" + f.filename)
         assert f.sha256 is not None and re.fullmatch(r"[0-9a-f]{64}", f.sha256)

@@ -7,15 +7,16 @@ anyone can write (clean-fid's /tmp).
 """
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import torch
 
-# File names as torchvision, the lpips package and the StyleGAN/clean-fid metrics publish them.
-TORCHVISION_FILES = {"alex": "alexnet-owt-7be5be79.pth", "vgg": "vgg16-397923af.pth"}
-LPIPS_LINEAR_FILES = {"alex": "alex.pth", "vgg": "vgg.pth"}
-INCEPTION_FILE = "inception-2015-12-05.pt"
+from pig.metrics.weight_files import LPIPS_FILES, by_name, lpips_package_weights  # noqa: F401 (re-exported)
+
+# File names as torchvision, the lpips package and the StyleGAN/clean-fid metrics publish them: the weight table's.
+TORCHVISION_FILES = {net: by_name([backbone])[0].filename for net, (backbone, _) in LPIPS_FILES.items()}
+LPIPS_LINEAR_FILES = {net: by_name([linear])[0].filename for net, (_, linear) in LPIPS_FILES.items()}
+INCEPTION_FILE = by_name(["inception"])[0].filename
 
 
 class WeightsMissing(FileNotFoundError):
@@ -25,14 +26,6 @@ class WeightsMissing(FileNotFoundError):
 def hub_checkpoints() -> Path:
     """The torch hub checkpoint cache, honouring $TORCH_HOME and $XDG_CACHE_HOME as torch does."""
     return Path(torch.hub.get_dir()) / "checkpoints"
-
-
-def lpips_package_weights() -> Path | None:
-    """The lpips package's `weights/v0.1` folder if the package is installed (it is not imported)."""
-    spec = importlib.util.find_spec("lpips")
-    if spec is None or spec.origin is None:
-        return None
-    return Path(spec.origin).parent / "weights" / "v0.1"
 
 
 def locate(filename: str, configured: str | Path | None, extra_dirs: list[Path | None], what: str) -> Path:
