@@ -135,3 +135,17 @@ def test_page_option_leaves_a_file_it_did_not_write(tmp_path, capsys):
                             "--page", str(other), "--device", "cpu"])
     assert exit_info.value.code == 2 and other.read_text() == "<p>mine</p>"
     assert f"--page: {other} exists and is not a page this stage wrote; pass --overwrite to replace it" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("where", ["inside the output", "the checkpoint"])
+def test_page_option_refuses_the_checkpoint_and_the_output_folder(tmp_path, where):
+    from pig._outputs import OutputError
+
+    checkpoint = tmp_path / "avatar.pt"
+    checkpoint.write_bytes(b"weights")
+    page = tmp_path / "out" / "page.html" if where == "inside the output" else checkpoint
+    message = "lies inside the input" if where == "inside the output" else "is the input"
+    with pytest.raises(OutputError, match=rf"{page}: the output {message}"):
+        animate_stage.main(["--checkpoint", str(checkpoint), "--output", str(tmp_path / "out"), "--page", str(page),
+                            "--device", "cpu", "--overwrite"])
+    assert checkpoint.read_bytes() == b"weights"

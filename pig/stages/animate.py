@@ -15,6 +15,7 @@ from pig.config import load_preset, load_section
 from pig.render.api import RasterizerConfig
 from pig.render.video_page import is_video_page, video_page
 from pig._io import write_text
+from pig._outputs import check_apart
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 
 MAX_FPS = 1000.0
@@ -74,8 +75,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     orbit = Orbit(radius=args.orbit_radius, height=args.orbit_height, period_s=args.orbit_period, width=args.size[0],
                   height_px=args.size[1])
-    if args.page is not None and args.page.exists() and not args.overwrite and not is_video_page(args.page):
-        parser.error(f"--page: {args.page} exists and is not a page this stage wrote; pass --overwrite to replace it")
+    if args.page is not None:
+        # Not the checkpoint or motion, nor inside the output folder (which a rerun replaces whole).
+        check_apart(args.page, [p for p in (args.checkpoint, args.motion, args.output) if p is not None])
+        if args.page.exists() and not args.overwrite and not is_video_page(args.page):
+            parser.error(f"--page: {args.page} exists and is not a page this stage wrote; pass --overwrite to replace it")
     rasterizer = load_section(load_preset(args.preset), "rasterizer", RasterizerConfig)
     video = animate(args.checkpoint, args.output, args.motion, args.camera, args.capture, args.lod, args.frames, args.fps,
                     args.up, orbit, args.seconds, args.png, args.exr, args.device, rasterizer, args.overwrite)
