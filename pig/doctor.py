@@ -218,8 +218,11 @@ def check_weights(preset: dict[str, Any]) -> list[Check]:
     for (name, configured), used_by in uses.items():
         found = status(by_name([name])[0], configured=configured)
         needed = LOSS_USE in used_by
+        own = configured is not None and found.path is not None  # the user's own weights, loaded as they are
         if found.ok:
             verdict, consequence = "ok", ""
+        elif own:
+            verdict, consequence = "warn", " (a configured file, used as it is)"
         elif needed and found.checksum in ("-", "bad"):
             verdict, consequence = "missing", "; the fit would leave its LPIPS term out"
         else:

@@ -211,3 +211,8 @@ def test_loss_defaults_are_the_fits(hub, monkeypatch):
     (hub / "alex.pth").write_bytes(b"other")
     assert [line.split(":")[0] for line in wf.loss_weight_problems({"lpips_net": "alex"})] == ["lpips-alex"]
     assert "checksum bad" in wf.loss_weight_problems({"lpips_net": "alex"})[0]
+    # The user's own weights, configured by path, are loaded as they are: not refused for their checksum, only absent.
+    own = {"lpips_net": "alex", "lpips_linear_weights": str(hub / "alex.pth")}
+    assert wf.loss_weight_problems(own) == []
+    missing = {"lpips_net": "alex", "lpips_linear_weights": str(hub / "absent.pth")}
+    assert [line.split(":")[0] for line in wf.loss_weight_problems(missing)] == ["lpips-alex"]

@@ -207,9 +207,13 @@ def loss_weight_problems(fit: dict) -> list[str]:
     if cfg["weight_lpips"] <= 0 or cfg["lpips_weights"] != "pretrained" or cfg["lpips_net"] not in LPIPS_FILES:
         return []
     backbone, linear = LPIPS_FILES[cfg["lpips_net"]]
-    found = [status(by_name([backbone])[0], configured=cfg["lpips_backbone_weights"]),
-             status(by_name([linear])[0], configured=cfg["lpips_linear_weights"])]
-    return [f"{s.entry.name}: {s.verdict()}" for s in found if not s.ok and s.checksum != "unknown"]
+    problems = []
+    for name, configured in ((backbone, cfg["lpips_backbone_weights"]), (linear, cfg["lpips_linear_weights"])):
+        found = status(by_name([name])[0], configured=configured)
+        # A configured file is the user's own (fine-tuned) weights, as the fit loads it: only its absence counts.
+        if not found.ok and found.checksum != "unknown" and not (configured is not None and found.path is not None):
+            problems.append(f"{name}: {found.verdict()}")
+    return problems
 
 
 def status_table(statuses: list[Status]) -> str:
