@@ -166,6 +166,13 @@ def test_configured_weight_paths_are_the_ones_checked(hub, monkeypatch, tmp_path
     preset["evaluate"]["lpips_backbone_weights"] = str(tmp_path / "mine.pth")
     checks = doctor.check_weights(preset)
     assert verdicts(checks)["alexnet"] == "warn" and str(tmp_path / "mine.pth") in checks[0].detail
+    # The paper's loss with the user's own (fine-tuned) VGG by path: used as it is, whatever its checksum.
+    write_weights(hub, monkeypatch, ["lpips-vgg", "inception"])
+    (tmp_path / "my_vgg.pth").write_bytes(b"fine-tuned")
+    paper = load_preset("paper")
+    paper["fit"]["lpips_backbone_weights"] = str(tmp_path / "my_vgg.pth")
+    checks = [c for c in doctor.check_weights(paper) if c.detail.startswith("vgg16") and "LPIPS loss" in c.detail]
+    assert [c.verdict for c in checks] == ["warn"] and "a configured file, used as it is" in checks[0].detail
 
 
 def test_body_model(tmp_path):
