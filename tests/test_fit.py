@@ -16,6 +16,7 @@ from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.render.api import render_gaussians
 from avatar_fixture import small_avatar
+from preset_files import write_test_preset
 
 
 def test_boundary_band_matches_opencv_dilate_minus_erode(rng):
@@ -120,25 +121,13 @@ def test_model_outputs_levels_and_novel_pose_override(standin):
 # ---- fit stage on a generated capture (slow: generation + two short fits) ----
 
 
-def _preset(tmp_path, avatar=None, **fit):
-    from pig.config import load_preset
-
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(fit)
-    preset["avatar"].update(avatar or {})
-    path = tmp_path / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
-
-
 @pytest.mark.slow
 def test_short_fit_learns_and_resumes_to_the_same_result(small_capture, tmp_path):
     import pandas as pd
 
     from pig.avatar.training import fit
 
-    preset = _preset(tmp_path, iterations=30, eval_every=15, checkpoint_minutes=0.0)
+    preset = write_test_preset(tmp_path, iterations=30, eval_every=15, checkpoint_minutes=0.0)
     capture = small_capture
     reference = fit(capture, tmp_path / "full", preset)
     log = pd.read_csv(tmp_path / "full" / "train_log.csv")
@@ -187,7 +176,7 @@ def test_leftover_checkpoint_of_another_fit_is_not_resumed(small_capture, tmp_pa
     params, frames = SmplxParams.load(other / "smplx.npz")
     params.transl = params.transl + 0.05
     params.save(other / "smplx.npz", frame_ids=frames)
-    preset = _preset(tmp_path, iterations=4, eval_every=4, checkpoint_minutes=0.0)
+    preset = write_test_preset(tmp_path, iterations=4, eval_every=4, checkpoint_minutes=0.0)
 
     class Killed(Exception):
         pass
@@ -255,8 +244,8 @@ def test_killed_and_resumed_fit_draws_the_same_batches_and_weights(small_capture
     iteration, and ends with bit-identical weights."""
     from pig.avatar.training import fit
 
-    preset = _preset(tmp_path, {"num_anchors": 300}, iterations=7, eval_every=100, checkpoint_minutes=0.0, views=2,
-                       timesteps=2, prefetch=3, loader_workers=2, view_cache=4)
+    preset = write_test_preset(tmp_path, {"num_anchors": 300}, iterations=7, eval_every=100, checkpoint_minutes=0.0,
+                               views=2, timesteps=2, prefetch=3, loader_workers=2, view_cache=4)
     record = _record_batches(monkeypatch)
     reference = fit(small_capture, tmp_path / "full", preset)
     uninterrupted = list(record)
@@ -291,7 +280,8 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     capture_dir = tmp_path / "capture"
     shutil.copytree(small_capture, capture_dir)
     small = {"num_anchors": 300}
-    preset = _preset(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=0.0, prefetch=2, view_cache=64)
+    preset = write_test_preset(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=0.0, prefetch=2,
+                               view_cache=64)
     def kill_at_3(iteration):
         if iteration == 3:
             raise _Killed
@@ -318,7 +308,8 @@ def test_corrupt_image_found_mid_training_stops_the_fit_and_keeps_the_checkpoint
     path.write_bytes(data[:-12] + bytes(12))
 
     done = []
-    resume_preset = _preset(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=1e6, prefetch=2, view_cache=64)
+    resume_preset = write_test_preset(tmp_path, small, iterations=12, eval_every=100, checkpoint_minutes=1e6,
+                                      prefetch=2, view_cache=64)
     with pytest.raises(CaptureError) as err:
         fit(capture_dir, tmp_path / "pig", resume_preset, on_iteration=done.append)
     assert done == list(range(4, due + 1))  # trained up to the batch that needs the file
@@ -340,7 +331,7 @@ def test_fit_without_training_images_names_the_capture(small_capture, tmp_path):
     for folder in (capture_dir / "images").iterdir():
         shutil.rmtree(folder)
     with pytest.raises(CaptureError, match=r"capture: no image and mask of the train split \(cameras \['cam00'"):
-        fit(capture_dir, tmp_path / "pig", _preset(tmp_path))
+        fit(capture_dir, tmp_path / "pig", write_test_preset(tmp_path))
     assert not any((tmp_path / "pig" / name).exists() for name in ("avatar.pt", "checkpoint.pt", "train_log.csv"))
 
 
@@ -350,7 +341,7 @@ def test_threads_argument_takes_the_place_of_the_presets_cpu_threads(small_captu
     from pig.avatar.training import fit
     from pig.stages.fit import main
 
-    preset = yaml.safe_load(open(_preset(tmp_path)))
+    preset = yaml.safe_load(open(write_test_preset(tmp_path)))
     preset["fit"].update(iterations=2, eval_every=2, cpu_threads=2)
     path = tmp_path / "threads.yaml"
     path.write_text(yaml.safe_dump(preset))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-import yaml
+from preset_files import write_test_preset
 
 from pig.avatar.fit_progress import FitProgress
 from pig.progress import set_quiet
@@ -65,17 +65,6 @@ def test_a_resumed_fit_estimates_from_this_runs_pace_and_quiet_prints_nothing():
         set_quiet(False)
 
 
-def _preset(tmp_path, **fit):
-    from pig.config import load_preset
-
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(fit)
-    path = tmp_path / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
-
-
 @pytest.mark.slow
 def test_fit_prints_progress_writes_tensorboard_and_redraws_the_plot(small_capture, tmp_path, capsys, monkeypatch):
     pytest.importorskip("tensorboard", reason="the tensorboard extra is not installed (pip install '.[tensorboard]')")
@@ -88,7 +77,7 @@ def test_fit_prints_progress_writes_tensorboard_and_redraws_the_plot(small_captu
     monkeypatch.setattr(training, "plot_train_log",
                         lambda path, rows, title="": (drawn.append(len(rows)), plot(path, rows, title)))
     out = tmp_path / "pig"
-    preset = _preset(tmp_path, iterations=4, eval_every=2, checkpoint_minutes=1e6)
+    preset = write_test_preset(tmp_path, iterations=4, eval_every=2, checkpoint_minutes=1e6)
     training.fit(small_capture, out, preset, progress_s=1e6, tensorboard=True)
     log = pd.read_csv(out / "train_log.csv")
     evaluated = log[log["heldout_psnr"].notna()]

@@ -6,13 +6,13 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-import yaml
 from PIL import Image
 
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.probe import box_intrinsics, mask_box, probe_pairs
 from pig.avatar.training import evaluations_due
 from pig.config import load_preset, load_section
+from preset_files import write_test_preset
 
 
 def test_default_run_has_at_least_ten_held_out_points():
@@ -116,21 +116,12 @@ def test_probe_psnr_equals_numpy_over_the_same_pixels(tiny_fit, scale):
     assert value == pytest.approx(np.mean(values), abs=2e-4)
 
 
-def _preset(tmp_path, **fit):
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(fit)
-    path = tmp_path / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
-
-
 @pytest.mark.slow
 def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_path, capsys, monkeypatch):
     from pig.avatar import training
     from pig.avatar.training import fit
 
-    preset = _preset(tmp_path, iterations=12, eval_every=6, probe_every=5, probe_views=2, probe_scale=2,
+    preset = write_test_preset(tmp_path, iterations=12, eval_every=6, probe_every=5, probe_views=2, probe_scale=2,
                      checkpoint_minutes=0.0)
     cfg = load_section(load_preset(preset), "fit", FitConfig)
     drawn, plot = [], training.plot_train_log
