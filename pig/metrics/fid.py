@@ -24,31 +24,38 @@ class FeatureStatistics:
     """Running mean (D,) and covariance (D, D) of feature batches in float64; memory O(D^2 + chunk_rows D),
     whatever the number of images (at D = 2048 and 512 rows: 40 MiB kept, under 90 MiB while merging).
 
-    Batches are buffered up to `chunk_rows` rows (each O(D^2) merge then serves many images), centred on
-    their own mean and merged with the pairwise update of Chan, Golub and LeVeque (1979):
-    M2 = M2_a + M2_b + (n_a n_b / n) d d^T, d = mean_b - mean_a. A plain sum of outer products would lose
-    all precision for features whose mean is large against their spread.
+    The sums live on the device of the first batch (numpy arrays: the CPU), so the evaluation keeps a GPU's
+    features on the GPU: no copy back and no wait per batch. Batches are buffered up to `chunk_rows` rows (each
+    O(D^2) merge then serves many images), centred on their own mean and merged with the pairwise update of Chan,
+    Golub and LeVeque (1979): M2 = M2_a + M2_b + (n_a n_b / n) d d^T, d = mean_b - mean_a. A plain sum of outer
+    products would lose all precision for features whose mean is large against their spread.
     """
 
     def __init__(self, chunk_rows: int = 512):
         self.chunk_rows = chunk_rows
         self.count = 0  # feature vectors added
         self._dim: int | None = None
-        self._pending: list[np.ndarray] = []
+        self._device: torch.device | None = None
+        self._pending: list[torch.Tensor] = []
         self._pending_rows = 0
         self._merged = 0
-        self._mean: np.ndarray | None = None
-        self._scatter: np.ndarray | None = None  # sum of outer products of deviations from the mean
+        self._mean: torch.Tensor | None = None
+        self._scatter: torch.Tensor | None = None  # sum of outer products of deviations from the mean
 
-    def update(self, features) -> None:
-        """Add a batch of features (B, D); B may be any size (0 too), D must not change."""
-        features = np.array(features, dtype=np.float64)  # a copy: the caller may reuse its buffer
+    def update(self, features: np.ndarray | torch.Tensor) -> None:
+        """Add a batch of features (B, D), a numpy array or a tensor; B may be any size (0 too), D must not
+        change, and tensors stay on the device of the first batch."""
+        features = torch.as_tensor(features)
         if features.ndim != 2 or (self._dim is not None and features.shape[1] != self._dim):
             expected = "(B, D)" if self._dim is None else f"(B, {self._dim})"
-            raise ValueError(f"FeatureStatistics expects {expected} features, found {features.shape}")
+            raise ValueError(f"FeatureStatistics expects {expected} features, found {tuple(features.shape)}")
+        if self._device is not None and features.device != self._device:
+            raise ValueError(f"FeatureStatistics holds sums on {self._device}, found features on {features.device}")
         if features.shape[0] == 0:
             return
-        self._dim = features.shape[1]
+        # A float64 copy: the caller may reuse its buffer.
+        features = features.to(torch.float64, copy=True)
+        self._dim, self._device = features.shape[1], features.device
         self._pending.append(features)
         self._pending_rows += features.shape[0]
         self.count += features.shape[0]
@@ -61,7 +68,7 @@ class FeatureStatistics:
         rows = self._pending_rows
         # The rows centred on their mean, plus one row sqrt(n_a n_b / n) d that gives the cross term in the
         # same product: one (rows + 1, D) buffer and one (D, D) temporary.
-        block = np.concatenate([*self._pending, np.zeros((1, self._dim))])
+        block = torch.cat([*self._pending, self._pending[0].new_zeros(1, self._dim)])
         self._pending, self._pending_rows = [], 0
         batch_mean = block[:rows].mean(0)
         block[:rows] -= batch_mean
@@ -80,14 +87,14 @@ class FeatureStatistics:
         if self.count == 0:
             raise ValueError("a mean needs >= 1 feature vector, have 0")
         self._merge()
-        return self._mean
+        return self._mean.cpu().numpy()
 
     def covariance(self) -> np.ndarray:
         """Sample covariance, N-1 normalised as the standard tools (np.cov, clean-fid)."""
         if self.count < 2:
             raise ValueError(f"a covariance needs >= 2 feature vectors, have {self.count}")
         self._merge()
-        return self._scatter / (self.count - 1)
+        return (self._scatter / (self.count - 1)).cpu().numpy()
 
 
 def _psd_eigenvalues_floor(values: np.ndarray) -> np.ndarray:
