@@ -177,7 +177,7 @@ def test_chunked_batched_evaluation_equals_per_image_scores_of_per_view_pngs(tmp
     from pig.metrics.lpips import LPIPS
     from pig.metrics.psnr import psnr
     from pig.metrics.ssim import ssim
-    from pig.stages.evaluate import evaluate_level
+    from pig.stages.evaluate import evaluate_levels
 
     capture_dir, renders = _tiny_capture(tmp_path, rng, frames=50)
     encoder = ChunkEncoder("webp")
@@ -189,8 +189,8 @@ def test_chunked_batched_evaluation_equals_per_image_scores_of_per_view_pngs(tmp
     encoder.close()
     capture = Capture.load(capture_dir, cache_mb=0)
     lpips = LPIPS("alex", weights="random")
-    table, _ = evaluate_level(capture, "novel_view", tmp_path / "chunked" / "lod0",
-                              EvaluateConfig(batch_size=16, encode_workers=2), lpips, None, torch.device("cpu"))
+    table, _ = evaluate_levels(capture, "novel_view", {0: tmp_path / "chunked" / "lod0"},
+                               EvaluateConfig(batch_size=16, encode_workers=2), lpips, None, torch.device("cpu"))[0]
     assert len(table) == 50
     for row in table.itertuples():
         render = torch.from_numpy(read_png(renders / "lod0" / "cam00" / f"{row.frame:08d}.png")).permute(2, 0, 1)[None]

@@ -167,11 +167,15 @@ class Capture:
 
     def image(self, camera: str, frame: int, background=None) -> np.ndarray:
         """(H, W, 3) float32 RGB in [0, 1] on the preprocess background, or recomposited on `background` (3,)."""
-        image = self._read("images", camera, frame).astype(np.float32) / 255
+        image = self.image_u8(camera, frame).astype(np.float32) / 255
         if background is not None:
             mask = self.mask(camera, frame)
             image = np.where(mask[..., None], image, np.asarray(background, dtype=np.float32))
         return image
+
+    def image_u8(self, camera: str, frame: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB on the preprocess background, read-only (shared with the cache)."""
+        return self._read("images", camera, frame)
 
     def mask(self, camera: str, frame: int) -> np.ndarray:
         """(H, W) bool foreground mask."""

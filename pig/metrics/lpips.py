@@ -139,12 +139,24 @@ class LPIPS(nn.Module):
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """The reference path: (B,) distances in float32 (outside autocast); its name and signature stay."""
         self._check(x, y)
+        return self.distance(x, self.reference(y))
+
+    def reference(self, y: torch.Tensor) -> list[torch.Tensor]:
+        """The unit-normalised taps of images `y`, for `distance`: the evaluation scores every LOD's renders
+        against one pass over the ground truth."""
+        return [_unit(fy) for fy in self._activations(y)]
+
+    def distance(self, x: torch.Tensor, reference: list[torch.Tensor]) -> torch.Tensor:
+        """(B,) distances of images `x` to the images whose `reference` taps are given; equals forward(x, y)."""
+        if reference and x.shape[0] != reference[0].shape[0]:
+            raise ValueError(f"LPIPS: {x.shape[0]} images against a reference of {reference[0].shape[0]}")
+        self._check(x, x)
         total = x.new_zeros(x.shape[0])
-        for fx, fy, lin in zip(self._activations(x), self._activations(y), self.lins):
-            # Unit-normalise along channels (eps as the lpips package), weight the squared difference, average spatially.
-            nx = fx / (fx.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-            ny = fy / (fy.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-            total = total + lin((nx - ny).pow(2)).mean(dim=(1, 2, 3))
+        for fx, ny, lin in zip(self._activations(x), reference, self.lins):
+            if fx.shape != ny.shape:
+                raise ValueError(f"LPIPS: images of {tuple(x.shape)} against reference taps of {tuple(ny.shape)}")
+            # Weight the squared difference of the unit features, average spatially.
+            total = total + lin((_unit(fx) - ny).pow(2)).mean(dim=(1, 2, 3))
         return total
 
     def _check(self, x: torch.Tensor, y: torch.Tensor) -> None:
@@ -153,6 +165,11 @@ class LPIPS(nn.Module):
         if min(x.shape[2:]) < MIN_SIDE[self.net]:
             raise ValueError(f"LPIPS ({self.net}) needs images of at least {MIN_SIDE[self.net]} pixels per side, "
                              f"found {x.shape[3]}x{x.shape[2]}")
+
+
+def _unit(features: torch.Tensor) -> torch.Tensor:
+    """Features unit-normalised along channels (eps as the lpips package)."""
+    return features / (features.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
 
 
 def head(fx: torch.Tensor, fy: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

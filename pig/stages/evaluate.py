@@ -2,8 +2,11 @@
 
 Follows the paper's protocol (Section 4.2): full frame, black background, ground truth masked to
 black. Writes metrics/{split}_lod{l}.csv (per image) and metrics/{split}_lod{l}.json (summary, with the render
-stage's timing and its note on the avatar's fit, `fit_note`). Views are read one batch at a time and FID keeps
-running feature statistics, so memory does not grow with the split.
+stage's timing and its note on the avatar's fit, `fit_note`) for each LOD, then metrics/{split}.json (the pass:
+its LODs, views a second, the seconds spent waiting for decoding and for the device). One pass scores every LOD:
+each ground-truth view is decoded once, and its LPIPS and Inception features are computed once for all LODs.
+Views are decoded on worker threads a few batches ahead of the metrics, and FID keeps running feature statistics
+on the device, so memory does not grow with the split.
 
 A capture with true meshes (synthetic, gt_meshes.npz) also gets PSNR/SSIM per region (garment, body, background;
 pig.metrics.regions) per image and in the summary, and the geometry error and correspondence drift of the render
@@ -13,6 +16,7 @@ from __future__ import annotations
 
 import math
 import re
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,6 +78,12 @@ class EvaluateConfig:
 UNRECORDED_FIT_NOTE = "fit's LPIPS term unknown (renders written before the render stage recorded it, re-run render)"
 
 
+def split_record_name(split: str) -> str:
+    """The evaluate stage's record of one split's pass (its LODs' summaries, views, where the seconds went),
+    written after every LOD's files: the workflow's output of the stage."""
+    return f"{split}.json"
+
+
 def render_levels(split_dir: Path) -> list[int]:
     """LOD indices rendered under renders/{split}/ (folders lod0, lod1, ...)."""
     levels = sorted(int(m.group(1)) for p in split_dir.glob("lod*") if (m := re.fullmatch(r"lod(\d+)", p.name)))
@@ -115,81 +125,166 @@ def _mean_of_present(values: pd.Series) -> float:
     return float(present.mean()) if len(present) else math.nan
 
 
-def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lpips_net, inception, device,
-                   fid_note: str = "", labeller: RegionLabeller | None = None) -> tuple[pd.DataFrame, dict]:
-    """Per-image metrics (DataFrame) and summary (dict) of one split at one LOD, over the split's views that
-    have ground truth. Without `inception` the FID is NaN with `fid_note`. With a `labeller` (true meshes), also
-    PSNR/SSIM per region (REGION_KEYS)."""
-    # Batches never mix image sizes (DNA-Rendering's two camera groups differ).
+def view_batches(capture, split: str, batch_size: int) -> list[list[tuple[str, int]]]:
+    """The split's views in batches of `batch_size`, camera-major; a batch never mixes image sizes (DNA-Rendering's
+    two camera groups differ)."""
     by_size: dict[tuple[int, int], list] = {}
     for c, f in capture.views(split):
         by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
-    batches = [pairs[i:i + cfg.batch_size] for pairs in by_size.values() for i in range(0, len(pairs), cfg.batch_size)]
-    rows, fake_features, real_features = [], FeatureStatistics(), FeatureStatistics()
-    reader = RenderReader(level_dir)
-
-    def truth(view):
-        mask = capture.mask(*view)
-        return capture.image(*view) * mask[..., None], mask
-
-    with ThreadPoolExecutor(cfg.encode_workers, thread_name_prefix="evaluate-decode") as pool:
-        # Decoding (OpenCV, off the GIL) of the next batch overlaps the metrics of this one.
-        def load(batch):
-            return pool.map(lambda view: reader.image(*view), batch), pool.map(truth, batch)
-
-        loaded = [load(batch) for batch in batches[:1]]
-        for b, batch in enumerate(progress_bar(batches, desc=f"evaluate {split} {level_dir.name}", unit="batch")):
-            if b + 1 < len(batches):
-                loaded.append(load(batches[b + 1]))
-            renders_iter, truths_iter = loaded.pop(0)
-            truths, masks = zip(*truths_iter)
-            renders, truths, masks = np.stack(list(renders_iter)), np.stack(truths), np.stack(masks)
-            rows.extend(_score_batch(batch, renders, truths, masks, level_dir, lpips_net, inception, device,
-                                     labeller, fake_features, real_features, protocol(cfg.protocol)))
-    table = pd.DataFrame(rows)
-    summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
-    if labeller is not None:
-        summary.update({key: _mean_of_present(table[key]) for key in REGION_KEYS})
-    summary["images"] = len(table)
-    fid = math.nan
-    if inception is not None:
-        fid, fid_note = fid_from_statistics(fake_features, real_features, cfg.fid_min_images)
-    summary.update(fid=fid, fid_images=len(table), fid_min_images=cfg.fid_min_images, fid_note=fid_note)
-    return table, summary
+    return [pairs[i:i + batch_size] for pairs in by_size.values() for i in range(0, len(pairs), batch_size)]
 
 
-def _score_batch(batch, renders, truths, masks, level_dir, lpips_net, inception, device, labeller, fake_features,
-                 real_features, rules: Protocol) -> list[dict]:
-    """Per-image metric rows of one batch by the protocol's `rules`; FID features go into the running statistics."""
-    rows = []
-    if renders.shape != truths.shape:
-        raise ValueError(f"{level_dir}: renders are {renders.shape[1:3]} but the capture's images are {truths.shape[1:3]}")
-    x = torch.from_numpy(renders).permute(0, 3, 1, 2).to(device)
-    y = torch.from_numpy(np.ascontiguousarray(truths, dtype=np.float32)).permute(0, 3, 1, 2).to(device)
-    blank = torch.zeros_like(y)
-    with torch.no_grad():
-        similarity = ssim_map(x, y)
-        # LPIPS and FID see the protocol's crop; PSNR, SSIM and the regions the full frame.
-        xc, yc = (x, y) if not rules.crop else [crop_to_mask_box(t, torch.from_numpy(masks).to(device)) for t in (x, y)]
-        values = {
-            "psnr": psnr(x, y),
-            "ssim": similarity.flatten(1).mean(1) if rules.ssim_window == "gaussian11" else ssim_uniform(x, y).float(),
-            "lpips": lpips_net(xc, yc) if lpips_net is not None else torch.full((len(batch),), math.nan),
-            "psnr_blank": psnr(blank, y),
-            "ssim_blank": ssim(blank, y, reduction="none"),
-        }
+@dataclass
+class LoadedBatch:
+    """One batch as uint8 tensors on the host: masked-out ground truth not yet applied (B, H, W, 3), masks (B, H, W)
+    bool, and each LOD's renders (B, H, W, 3)."""
+
+    views: list[tuple[str, int]]
+    truths: torch.Tensor
+    masks: torch.Tensor
+    renders: dict[int, torch.Tensor]
+
+
+class BatchLoader:
+    """Decodes each batch's ground truth once and every LOD's renders of it on `workers` threads (OpenCV releases
+    the GIL), `ahead` batches in front of the one being scored, straight into uint8 buffers: page-locked when
+    `pin` (a GPU's copies then run asynchronously), a quarter of the float32 bytes either way. Iterating yields
+    LoadedBatch; `wait_s` sums the time the scoring waited for decoding."""
+
+    def __init__(self, capture, readers: dict[int, RenderReader], batches: list[list[tuple[str, int]]], workers: int,
+                 pin: bool = False, ahead: int = 2):
+        self.capture, self.readers, self.batches = capture, readers, batches
+        self.workers, self.pin, self.ahead = workers, pin, ahead
+        self.wait_s = 0.0
+
+    def __iter__(self):
+        with ThreadPoolExecutor(self.workers, thread_name_prefix="evaluate-decode") as pool:
+            pending = [self._submit(pool, batch) for batch in self.batches[:self.ahead + 1]]
+            for b in range(len(self.batches)):
+                loaded, jobs = pending.pop(0)
+                start = time.perf_counter()
+                for job in jobs:
+                    job.result()  # re-raises a decoding error naming its file
+                self.wait_s += time.perf_counter() - start
+                if b + self.ahead + 1 < len(self.batches):
+                    pending.append(self._submit(pool, self.batches[b + self.ahead + 1]))
+                yield loaded
+
+    def _submit(self, pool: ThreadPoolExecutor, views: list[tuple[str, int]]):
+        camera = self.capture.cameras[views[0][0]]
+        shape = (len(views), camera.height, camera.width)
+        loaded = LoadedBatch(views, self._empty(*shape, 3), self._empty(*shape, dtype=torch.bool),
+                             {level: self._empty(*shape, 3) for level in self.readers})
+        jobs = []
+        for i, view in enumerate(views):
+            jobs.append(pool.submit(self._truth, view, loaded.truths[i].numpy(), loaded.masks[i].numpy()))
+            jobs += [pool.submit(self._render, reader, view, loaded.renders[level][i].numpy())
+                     for level, reader in self.readers.items()]
+        return loaded, jobs
+
+    def _empty(self, *shape: int, dtype: torch.dtype = torch.uint8) -> torch.Tensor:
+        return torch.empty(shape, dtype=dtype, pin_memory=self.pin)
+
+    def _truth(self, view: tuple[str, int], image: np.ndarray, mask: np.ndarray) -> None:
+        image[...] = self.capture.image_u8(*view)
+        mask[...] = self.capture.mask(*view)
+
+    @staticmethod
+    def _render(reader: RenderReader, view: tuple[str, int], out: np.ndarray) -> None:
+        image = reader.image_u8(*view)
+        if image.shape != out.shape:
+            raise ValueError(f"{reader.source(*view)}: render is {image.shape[1]}x{image.shape[0]} but the capture's "
+                             f"image is {out.shape[1]}x{out.shape[0]}")
+        out[...] = image
+
+
+def _unit_floats(images: torch.Tensor, device) -> torch.Tensor:
+    """(B, H, W, 3) uint8 -> (B, 3, H, W) float32 in [0, 1] on `device`: the values read_png gives."""
+    return (images.to(device, non_blocking=True).float() / 255).permute(0, 3, 1, 2)
+
+
+def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: EvaluateConfig, lpips_net, inception,
+                    device, fid_note: str = "", labeller: RegionLabeller | None = None,
+                    seconds: dict | None = None) -> dict[int, tuple[pd.DataFrame, dict]]:
+    """Per-image metrics (DataFrame) and summary (dict) of one split at each LOD of `level_dirs` ({level: folder}),
+    over the split's views that have ground truth, in one pass: each ground-truth view is decoded, masked and
+    passed through the LPIPS and Inception networks once for all LODs. Without `inception` the FID is NaN with
+    `fid_note`. With a `labeller` (true meshes), also PSNR/SSIM per region (REGION_KEYS). `seconds`, when given,
+    gets the wall time (`total_s`) and the time spent waiting for decoding (`decode_wait_s`) and for the device
+    (`device_wait_s`)."""
+    device = torch.device(device)
+    rules = protocol(cfg.protocol)
+    batches = view_batches(capture, split, cfg.batch_size)
+    loader = BatchLoader(capture, {level: RenderReader(path) for level, path in level_dirs.items()}, batches,
+                         cfg.encode_workers, pin=device.type == "cuda")
+    values: dict[int, list[dict[str, torch.Tensor]]] = {level: [] for level in level_dirs}
+    fake_features = {level: FeatureStatistics() for level in level_dirs}
+    real_features = FeatureStatistics()
+    in_flight: list = []  # one event per batch queued on a GPU: the host runs at most two batches ahead
+    start, device_wait = time.perf_counter(), 0.0
+    for loaded in progress_bar(loader, total=len(batches), desc=f"evaluate {split}", unit="batch"):
+        with torch.no_grad():
+            masks = loaded.masks.to(device, non_blocking=True)
+            y = ((loaded.truths.to(device, non_blocking=True).float() / 255) * masks[..., None]).permute(0, 3, 1, 2)
+            # LPIPS and FID see the protocol's crop; PSNR, SSIM and the regions the full frame.
+            yc = crop_to_mask_box(y, masks) if rules.crop else y
+            truth_only = {"psnr_blank": psnr(torch.zeros_like(y), y),
+                          "ssim_blank": ssim(torch.zeros_like(y), y, reduction="none")}
+            reference = lpips_net.reference(yc) if lpips_net is not None else None
+            if inception is not None:
+                real_features.update(inception(yc).double())
+            labels = None
+            if labeller is not None:
+                labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in loaded.views])).to(device)
+            for level, renders in loaded.renders.items():
+                x = _unit_floats(renders, device)
+                values[level].append(_score(x, y, masks, rules, lpips_net, reference, labels, truth_only))
+                if inception is not None:
+                    fake_features[level].update(inception(crop_to_mask_box(x, masks) if rules.crop else x).double())
+            del reference
+        if device.type == "cuda":
+            in_flight.append(torch.cuda.Event())
+            in_flight[-1].record()
+            if len(in_flight) > 2:
+                wait = time.perf_counter()
+                in_flight.pop(0).synchronize()
+                device_wait += time.perf_counter() - wait
+    results = {}
+    views = [view for batch in batches for view in batch]
+    for level in level_dirs:
+        columns = {key: torch.cat([batch[key] for batch in values[level]]).cpu().numpy() for key in values[level][0]}
+        table = pd.DataFrame({"camera": [cam for cam, _ in views], "frame": [frame for _, frame in views],
+                              **{key: column.astype(np.float64) for key, column in columns.items()}})
+        summary = {k: float(table[k].mean()) for k in ("psnr", "ssim", "lpips", "psnr_blank", "ssim_blank")}
         if labeller is not None:
-            labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in batch])).to(device)
-            region_values = {"psnr": region_psnr(x, y, labels), "ssim": region_ssim(similarity, labels)}
-            for metric, per_region in region_values.items():
-                for region, code in REGIONS.items():
-                    values[f"{metric}_{region}"] = per_region[:, code]
+            summary.update({key: _mean_of_present(table[key]) for key in REGION_KEYS})
+        summary["images"] = len(table)
+        fid, note = math.nan, fid_note
         if inception is not None:
-            fake_features.update(inception(xc).double().cpu().numpy())
-            real_features.update(inception(yc).double().cpu().numpy())
-    for i, (cam, frame) in enumerate(batch):
-        rows.append({"camera": cam, "frame": frame, **{k: float(v[i]) for k, v in values.items()}})
-    return rows
+            fid, note = fid_from_statistics(fake_features[level], real_features, cfg.fid_min_images)
+        summary.update(fid=fid, fid_images=len(table), fid_min_images=cfg.fid_min_images, fid_note=note)
+        results[level] = table, summary
+    if seconds is not None:
+        seconds.update(total_s=time.perf_counter() - start, decode_wait_s=loader.wait_s, device_wait_s=device_wait)
+    return results
+
+
+def _score(x, y, masks, rules: Protocol, lpips_net, reference, labels, truth_only: dict) -> dict[str, torch.Tensor]:
+    """(B,) metric values of renders `x` against the masked truth `y` by the protocol's `rules`, on their device."""
+    similarity = ssim_map(x, y)
+    values = {
+        "psnr": psnr(x, y),
+        "ssim": similarity.flatten(1).mean(1) if rules.ssim_window == "gaussian11" else ssim_uniform(x, y).float(),
+        "lpips": (lpips_net.distance(crop_to_mask_box(x, masks) if rules.crop else x, reference)
+                  if lpips_net is not None else torch.full((len(x),), math.nan, device=x.device)),
+        **truth_only,
+    }
+    if labels is not None:
+        region_values = {"psnr": region_psnr(x, y, labels), "ssim": region_ssim(similarity, labels)}
+        for metric, per_region in region_values.items():
+            for region, code in REGIONS.items():
+                values[f"{metric}_{region}"] = per_region[:, code]
+    return values
 
 
 def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: Path, cfg: EvaluateConfig,
@@ -207,8 +302,8 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
                                 "rendered has fewer levels; was `avatar.levels` (or the variant's override) changed "
                                 "after its fit? Rerun fit and render, e.g. `snakemake -R fit_avatar`")
     levels = levels if levels is not None else rendered
-    claim_files(output_dir, [f"{split}_lod{level}{ext}" for level in levels for ext in (".csv", ".json")], "evaluate",
-                (capture_dir, split_dir), overwrite)
+    claim_files(output_dir, [*(f"{split}_lod{level}{ext}" for level in levels for ext in (".csv", ".json")),
+                             split_record_name(split)], "evaluate", (capture_dir, split_dir), overwrite)
     # Each view is read once: a cache would only hold decoded images that are never asked for again.
     capture = Capture.load(capture_dir, cache_mb=0)
     record = read_capture_record(split_dir, "render")  # renders of another capture are not scored against this one
@@ -235,15 +330,18 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         labeller = RegionLabeller(truth, capture.cameras)
         for level in levels:  # before any work: renders of an older render stage lack them
             SplatTrack.require(split_dir / f"lod{level}" / SPLATS)
+    # Before the pass, as the splat tracks: renders without a timing record fail at once, not after scoring.
+    timings = {level: read_record(split_dir / f"lod{level}" / "timing.json",
+                                  "the render stage's timing record (splats, model_mb, fps, device)") for level in levels}
+    seconds: dict = {}
+    results = evaluate_levels(capture, split, {level: split_dir / f"lod{level}" for level in levels}, cfg, lpips_net,
+                              inception, device, fid_note, labeller, seconds)
     written = []
-    for level in levels:
+    for level, (table, summary) in results.items():
         level_dir = split_dir / f"lod{level}"
-        table, summary = evaluate_level(capture, split, level_dir, cfg, lpips_net, inception, device, fid_note,
-                                        labeller)
         if truth is not None:
             summary.update(ground_truth_geometry(_splat_track(level_dir, capture, split), truth, cfg.geometry_frames))
-        timing = read_record(level_dir / "timing.json", "the render stage's timing record (splats, model_mb, fps, device)")
-        timing.setdefault("fit_note", UNRECORDED_FIT_NOTE)
+        timing = {"fit_note": UNRECORDED_FIT_NOTE, **timings[level]}
         summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, protocol=cfg.protocol,
                        protocol_note=rules.note if cfg.protocol != "ours" else "", weights_note=weights,
                        **timing)
@@ -263,6 +361,15 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         for note in (summary["fid_note"], summary["fit_note"]):
             if note:
                 print(f"[evaluate] {split} lod{level}: {note}")
+    scored = views * len(levels)
+    # Written last: the workflow's output of the split, present only once every LOD's files are.
+    write_json(output_dir / split_record_name(split), {
+        "split": split, "levels": levels, "views": views, "device": str(device),
+        "summaries": [f"{split}_lod{level}.json" for level in levels], **seconds,
+        "views_per_s": scored / seconds["total_s"] if seconds["total_s"] > 0 else math.nan})
+    print(f"[evaluate] {split}: {views} views x {len(levels)} LODs in {seconds['total_s']:.1f} s "
+          f"({scored / max(seconds['total_s'], 1e-9):.1f} views/s); waited {seconds['decode_wait_s']:.1f} s for "
+          f"decoding and {seconds['device_wait_s']:.1f} s for the device")
     return written
 
 
@@ -283,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--renders", type=Path, required=True, help="renders/{split} directory of the render stage")
     parser.add_argument("--split", required=True, choices=["novel_view", "novel_pose", "train"],
                         help="the split the renders are of")
-    parser.add_argument("--output", type=Path, required=True, help="metrics directory ({split}_lod{l}.csv/.json go here)")
+    parser.add_argument("--output", type=Path, required=True, help="metrics directory ({split}_lod{l}.csv/.json and {split}.json go here)")
     parser.add_argument("--lod", type=int, nargs="*", default=None, help="levels to evaluate (default: all rendered)")
     add_preset_argument(parser, "its evaluate section")
     add_device_argument(parser, None, "the preset's evaluate.device")
