@@ -32,7 +32,7 @@ MARK = "# written by pig's tests/test_slurm_cluster.py"
 TOOLS = ("munged", "mungekey", "slurmctld", "slurmd", "sinfo", "sbatch", "squeue", "sacct", "scancel")
 # Jobs of the default target with the test preset (2 LODs, 2 held-out splits, one variant): the main and regions
 # tables, the montages and the report's turntable.
-JOBS = {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": 1, "render_split": 2, "evaluate": 4,
+JOBS = {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": 1, "render_split": 2, "evaluate": 2,
         "montage_split": 2, "make_tables": 1, "make_table": 1, "animate": 1}
 
 

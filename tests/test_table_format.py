@@ -202,7 +202,7 @@ def test_default_target_builds_the_regions_table_and_the_reports_turntable(tmp_p
     work = _synthetic_workdir(tmp_path)
     output = snakemake_run(work, "--dry-run", "--printshellcmds", "--config", "preset=config/test preset.yaml")
     assert job_counts(output) == {"generate_capture": 1, "preprocess_capture": 1, "fit_avatar": 1, "render_split": 2,
-                                  "evaluate": 4, "make_tables": 1, "make_table": 1, "montage_split": 2, "animate": 1,
+                                  "evaluate": 2, "make_tables": 1, "make_table": 1, "montage_split": 2, "animate": 1,
                                   "all": 1}
     commands = [line for line in output.splitlines() if "python -m pig " in line]
     assert any("python -m pig tables --table regions " in line for line in commands)

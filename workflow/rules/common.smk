@@ -386,6 +386,16 @@ def table_runs(dataset, table):
     return [(subject, variant) for subject in people for variant in names]
 
 
+def table_passes(dataset, table):
+    """The evaluate records of a table's runs, one per split: the jobs' outputs (table_summaries' files come with
+    them)."""
+    return [
+        f"results/{dataset}/{subject}/{variant}/metrics/{split}.json"
+        for subject, variant in table_runs(dataset, table)
+        for split in SPLITS
+    ]
+
+
 def table_summaries(dataset, table):
     """The evaluate summaries a table reads: every split and LOD of its runs."""
     return [

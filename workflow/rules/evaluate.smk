@@ -34,20 +34,19 @@ rule render_split:
 
 
 rule evaluate:
-    """Score one level of detail of a rendered split: PSNR, SSIM, LPIPS per image, FID per set."""
+    """Score every level of detail of a rendered split in one pass: PSNR, SSIM, LPIPS per image, FID per set."""
     input:
         renders="results/{dataset}/{subject}/{variant}/renders/{split}",
         capture="results/{dataset}/{subject}/capture/report.json",
     output:
-        csv="results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.csv",
-        summary="results/{dataset}/{subject}/{variant}/metrics/{split}_lod{lod}.json",
+        # Written after every LOD's {split}_lod{l}.csv / .json (their number is the variant's avatar.levels).
+        record="results/{dataset}/{subject}/{variant}/metrics/{split}.json",
     log:
-        "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}_lod{lod}.log",
+        "results/{dataset}/{subject}/{variant}/logs/evaluate_{split}.log",
     benchmark:
-        "results/{dataset}/{subject}/{variant}/benchmarks/evaluate_{split}_lod{lod}.tsv"
+        "results/{dataset}/{subject}/{variant}/benchmarks/evaluate_{split}.tsv"
     wildcard_constraints:
         split="|".join(SPLITS),
-        lod=r"\d+",
     conda:
         conda_env("evaluate")
     threads: preset_threads("evaluate")
@@ -55,21 +54,21 @@ rule evaluate:
         **preset_resources("evaluate"),
     params:
         capture=lambda wildcards, input: str(Path(input.capture).parent),
-        output=lambda wildcards, output: str(Path(output.csv).parent),
+        output=lambda wildcards, output: str(Path(output.record).parent),
         preset=config["preset"],
         # Not used by the command: a change reruns the rule (params trigger).
         settings=preset_settings("evaluate"),
     shell:
         "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule evaluate -- "
         "python -m pig evaluate --capture {params.capture:q} --renders {input.renders:q} "
-        "--split {wildcards.split:q} --lod {wildcards.lod:q} --output {params.output:q} "
+        "--split {wildcards.split:q} --output {params.output:q} "
         "--preset {params.preset:q} > {log:q} 2>&1"
 
 
 rule make_tables:
     """The main and LOD tables and the plot of held-out PSNR against training time of every variant."""
     input:
-        summaries=lambda wildcards: table_summaries(wildcards.dataset, "main"),
+        passes=lambda wildcards: table_passes(wildcards.dataset, "main"),
         train_logs=table_train_logs,
     output:
         table="results/tables/{dataset}.csv",
@@ -107,10 +106,11 @@ rule make_tables:
     resources:
         **preset_resources("make_tables"),
     params:
+        summaries=lambda wildcards: table_summaries(wildcards.dataset, "main"),
         variants=variant_names("main"),
         output=lambda wildcards, output: str(Path(output.table).parent),
     shell:
-        "python -m pig tables --dataset {wildcards.dataset:q} --summaries {input.summaries:q} "
+        "python -m pig tables --dataset {wildcards.dataset:q} --summaries {params.summaries:q} "
         "--train-logs {input.train_logs:q} --variants {params.variants:q} --output {params.output:q} "
         "> {log:q} 2>&1"
 
@@ -118,7 +118,7 @@ rule make_tables:
 rule make_table:
     """One of the structural ablation, noise and ground-truth region tables."""
     input:
-        summaries=lambda wildcards: table_summaries(wildcards.dataset, wildcards.table),
+        passes=lambda wildcards: table_passes(wildcards.dataset, wildcards.table),
     output:
         table="results/tables/{dataset}_{table}.csv",
         markdown="results/tables/{dataset}_{table}.md",
@@ -141,10 +141,11 @@ rule make_table:
     resources:
         **preset_resources("make_table"),
     params:
+        summaries=lambda wildcards: table_summaries(wildcards.dataset, wildcards.table),
         variants=lambda wildcards: table_variants(preset(), variant_names(wildcards.table), wildcards.table),
         output=lambda wildcards, output: str(Path(output.table).parent),
         preset=config["preset"],
     shell:
         "python -m pig tables --table {wildcards.table:q} --dataset {wildcards.dataset:q} "
-        "--summaries {input.summaries:q} --variants {params.variants:q} --preset {params.preset:q} "
+        "--summaries {params.summaries:q} --variants {params.variants:q} --preset {params.preset:q} "
         "--output {params.output:q} > {log:q} 2>&1"
