@@ -199,3 +199,75 @@ def test_chunked_batched_evaluation_equals_per_image_scores_of_per_view_pngs(tmp
         assert row.psnr == pytest.approx(float(psnr(render, truth)), abs=1e-4)
         assert row.ssim == pytest.approx(float(ssim(render, truth)), abs=1e-5)
         assert row.lpips == pytest.approx(float(lpips(render, truth)), abs=1e-5)
+
+
+def test_every_lod_in_one_pass_equals_each_view_scored_alone(tmp_path, rng, monkeypatch):
+    """Two LODs of 24 views scored in one pass (batches of 16, decoded on 3 threads) against each view scored alone
+    from its PNG: PSNR within 1e-4 dB, SSIM within 1e-5, LPIPS (random stand-in weights) within 1e-5; each LOD's
+    FID (a stand-in Inception) within 1e-6 of np.cov statistics of all its views' features at once; and every
+    ground-truth view decoded once for both LODs."""
+    from test_metrics import _TinyInception, _tiny_capture
+
+    from pig.metrics.fid import InceptionFeatures, frechet_distance
+    from pig.metrics.lpips import LPIPS
+    from pig.metrics.psnr import psnr
+    from pig.metrics.ssim import ssim
+    from pig.stages.evaluate import evaluate_levels
+
+    frames = 24
+    capture_dir, renders = _tiny_capture(tmp_path, rng, frames=frames)
+    pngs = {0: renders / "lod0" / "cam00", 1: tmp_path / "lod1_png"}
+    pngs[1].mkdir()
+    for frame in range(frames):  # the coarser LOD: the finer one's renders with noise, another set of scores
+        image = read_png(pngs[0] / f"{frame:08d}.png")
+        write_png(pngs[1] / f"{frame:08d}.png", np.clip(image + rng.normal(0, 0.1, image.shape), 0, 1))
+    encoder = ChunkEncoder("png")
+    for level, folder in pngs.items():
+        for frame in range(frames):
+            path = chunk_path(tmp_path / "chunked" / f"lod{level}", "cam00", frame // 16 * 16)
+            encoder.add(path, frame, np.round(read_png(folder / f"{frame:08d}.png") * 255).astype(np.uint8))
+            if frame % 16 == 15 or frame == frames - 1:
+                encoder.finish_chunk(path)
+    encoder.close()
+    torch.manual_seed(0)
+    torch.jit.script(_TinyInception()).save(str(tmp_path / "inception.pt"))
+    inception = InceptionFeatures(tmp_path / "inception.pt")
+    lpips = LPIPS("alex", weights="random")
+    capture = Capture.load(capture_dir, cache_mb=0)
+    reads = []
+    original = Capture.image_u8
+    monkeypatch.setattr(Capture, "image_u8", lambda self, cam, frame: reads.append((cam, frame)) or original(self, cam, frame))
+
+    results = evaluate_levels(capture, "novel_view", {level: tmp_path / "chunked" / f"lod{level}" for level in pngs},
+                              EvaluateConfig(batch_size=16, encode_workers=3), lpips, inception, torch.device("cpu"))
+    assert sorted(reads) == [("cam00", frame) for frame in range(frames)]
+    as_batch = lambda images: torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2)  # noqa: E731
+    truths = as_batch([capture.image("cam00", f) * capture.mask("cam00", f)[..., None] for f in range(frames)])
+    real = inception(truths).double().numpy()
+    for level, folder in pngs.items():
+        table, summary = results[level]
+        assert table["frame"].tolist() == list(range(frames))
+        for row in table.itertuples():
+            render = as_batch([read_png(folder / f"{row.frame:08d}.png")])
+            truth = truths[row.frame:row.frame + 1]
+            assert row.psnr == pytest.approx(float(psnr(render, truth)), abs=1e-4)
+            assert row.ssim == pytest.approx(float(ssim(render, truth)), abs=1e-5)
+            assert row.lpips == pytest.approx(float(lpips(render, truth)), abs=1e-5)
+        fake = inception(as_batch([read_png(folder / f"{f:08d}.png") for f in range(frames)])).double().numpy()
+        expected = frechet_distance(fake.mean(0), np.cov(fake, rowvar=False), real.mean(0), np.cov(real, rowvar=False))
+        assert expected > 0 and summary["fid"] == pytest.approx(expected, rel=1e-6)
+    assert (results[0][0]["psnr"] != results[1][0]["psnr"]).all()  # each LOD scored its own renders
+
+
+def test_lpips_against_reference_taps_equals_the_pair_forward(rng):
+    """LPIPS.distance of several image sets against one set's `reference` taps equals forward on each pair."""
+    from pig.metrics.lpips import LPIPS
+
+    net = LPIPS("alex", weights="random")
+    y = torch.from_numpy(rng.random((3, 3, 40, 36), dtype=np.float32))
+    reference = net.reference(y)
+    for _ in range(2):
+        x = torch.from_numpy(rng.random((3, 3, 40, 36), dtype=np.float32))
+        torch.testing.assert_close(net.distance(x, reference), net(x, y), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="2 images against a reference of 3"):
+        net.distance(y[:2], reference)
