@@ -13,6 +13,10 @@ a fit of `--iterations` iterations with the given preset (default: `paper` on CU
 
 `--paper-resolution` adds one run on a 1330 x 1150 capture (`--paper-frames` generated, tiled to
 `--paper-tiled` frames) whose train log gives the data wait per iteration and its share of the iteration.
+`--upscale S` generates every frame of it instead of tiling (`--paper-frames` is then ignored): the generator
+ray-casts at 1/S of the size (S must divide 1330 and 1150, e.g. 5: 266 x 230) and preprocess resizes to full size,
+so no two frames share pixels, at ~1/S^2 of the full-size generator's cost (`build_capture`; benchmarks/eval_scale.py
+uses it for the protocol's distinct ground truth).
 """
 from __future__ import annotations
 
@@ -35,16 +39,26 @@ from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.stages.preprocess import main as preprocess
 
 
-def build_capture(workdir: Path, cameras: int, frames: int, width: int, height: int, workers: int) -> tuple[Path, dict]:
-    """Generate and preprocess a capture; returns its folder and the preprocess throughput."""
-    raw, capture = workdir / f"raw_{cameras}x{frames}_{width}", workdir / f"capture_{cameras}x{frames}_{width}"
+def build_capture(workdir: Path, cameras: int, frames: int, width: int, height: int, workers: int,
+                  upscale: int = 1) -> tuple[Path, dict]:
+    """Generate and preprocess a capture of `width` x `height` views; returns its folder and the preprocess
+    throughput. With `upscale` s > 1 the generator ray-casts s x s times fewer pixels (`width` / s x `height` / s,
+    which s must divide) and preprocess resizes them to full size (bilinear, masks thresholded, K scaled): every frame
+    is its own pose's image, distinct from all others, at ~1/s^2 of the generator's cost (smoother than a
+    full-size render, so its PNGs are smaller)."""
+    if width % upscale or height % upscale:
+        raise SystemExit(f"--upscale {upscale} must divide the size {width} x {height}")
+    tag = f"{cameras}x{frames}_{width}" + (f"_up{upscale}" if upscale > 1 else "")
+    raw, capture = workdir / f"raw_{tag}", workdir / f"capture_{tag}"
     if not (capture / "report.json").is_file():
-        cfg = SyntheticConfig(cameras=cameras, frames=frames, width=width, height=height, workers=workers)
+        cfg = SyntheticConfig(cameras=cameras, frames=frames, width=width // upscale, height=height // upscale,
+                              workers=workers)
         start = time.perf_counter()
         generate_capture(raw, cfg, overwrite=True, progress=False)
-        print(f"generate {cameras} x {frames} at {width} x {height}: {time.perf_counter() - start:.1f} s", flush=True)
-        profile = workdir / "preprocess.yaml"
-        profile.write_text(yaml.safe_dump({"preprocess": {"workers": workers}}))
+        print(f"generate {cameras} x {frames} at {cfg.width} x {cfg.height}: {time.perf_counter() - start:.1f} s",
+              flush=True)
+        profile = workdir / f"preprocess_{upscale}.yaml"
+        profile.write_text(yaml.safe_dump({"preprocess": {"workers": workers, "scale": upscale}}))
         if preprocess(["--input", str(raw), "--output", str(capture), "--preset", str(profile), "--dataset", "synthetic",
                        "--no-progress", "--overwrite"]) != 0:
             raise SystemExit("preprocess failed")
@@ -140,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--paper-frames", type=int, default=4, help="frames generated at 1330 x 1150")
     parser.add_argument("--paper-tiled", type=int, default=2000, help="frames of the tiled 1330 x 1150 capture")
     parser.add_argument("--paper-iterations", type=int, default=100)
+    parser.add_argument("--upscale", type=int, default=1,
+                        help="generate every 1330 x 1150 frame at 1/S of the size and upscale it (distinct frames)")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
@@ -156,13 +172,15 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"capture": f"{args.cameras} x {frames} at {args.width} x {args.height}", **result})
         print(json.dumps(rows[-1]), flush=True)
     if args.paper_resolution:
-        paper, rate = build_capture(args.workdir, args.cameras, args.paper_frames, 1330, 1150, args.workers)
+        generated = args.paper_tiled if args.upscale > 1 else args.paper_frames
+        paper, rate = build_capture(args.workdir, args.cameras, generated, 1330, 1150, args.workers, args.upscale)
         print(f"preprocess at 1330 x 1150: {rate['images_per_s']:.1f} images/s ({args.workers} workers)", flush=True)
-        tiled = tile_capture(paper, args.workdir / f"paper_tiled_{args.paper_tiled}", args.paper_tiled)
+        tiled = paper if args.upscale > 1 else tile_capture(paper, args.workdir / f"paper_tiled_{args.paper_tiled}",
+                                                            args.paper_tiled)
         profile = fit_profile(args.workdir, args.preset, args.paper_iterations, "paper_resolution")
         result = measure_fit(tiled, profile, args.device, args.workdir / "fit_paper_resolution")
-        rows.append({"capture": f"{args.cameras} x {args.paper_tiled} at 1330 x 1150 "
-                                f"({args.paper_frames} generated)", **result})
+        made = f"all generated at 1/{args.upscale}" if args.upscale > 1 else f"{args.paper_frames} generated"
+        rows.append({"capture": f"{args.cameras} x {args.paper_tiled} at 1330 x 1150 ({made})", **result})
         print(json.dumps(rows[-1]), flush=True)
 
     print(f"\n{'capture':<40} {'peak RSS MiB':>12} {'peak GPU MiB':>12} {'ms/it':>8} {'wait ms':>8} {'wait %':>7}")
