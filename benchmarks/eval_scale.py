@@ -1,18 +1,27 @@
-"""Render and evaluate at the THuman4 protocol's scale: wall time, views/s, peak host/GPU memory, bytes per stage.
+"""Render and evaluate at the THuman4 protocol's scale: wall time, views/s, peak host/GPU memory, bytes per stage,
+and where an evaluate second goes.
 
-Builds a capture of THuman4's dimensions (24 cameras, 2000 training + 500 novel-pose frames, 1330 x 1150):
-`--generated-frames` frames are generated and preprocessed, the others repeat their images by hard links
-(as benchmarks/data_scale.py does) under SMPL-X poses that never repeat (seeded noise on the body joints), so
-every frame is its own pose and nearest-timestep lookup. The split is THuman4's: cam23 held out on the training
-frames (novel view), all 24 cameras on the last 500 (novel pose); `--fraction` scales both frame counts. An
-avatar with one timestep per training frame is fitted for `--iterations` iterations, then the render stage
-runs per split and the evaluate stage per split and LOD, each as its own process with the workflow's command
-line, so old and new code (`--code`) run the same way. LPIPS-VGG and FID use stand-in random weights written
-to the work folder's torch hub cache (real weights cost the same time).
+Builds a capture of THuman4's dimensions (24 cameras, 2000 training + 500 novel-pose frames, 1330 x 1150).
+By default `--generated-frames` frames are generated and preprocessed, the others repeat their images by hard
+links (as benchmarks/data_scale.py does) under SMPL-X poses that never repeat (seeded noise on the body joints), so
+every frame is its own pose and nearest-timestep lookup, but the ground truth repeats. `--upscale S` instead
+generates every frame at 1/S of the size and upscales it in preprocess (data_scale.build_capture): no two frames
+share pixels, as the whole-protocol figure needs. The split is THuman4's: cam23 held out on the training frames
+(novel view), all 24 cameras on the last 500 (novel pose), its views stored as lossless PNG as preprocess stores
+held-out views; `--fraction` scales both frame counts. An avatar with one timestep per training frame is fitted
+for `--iterations` iterations, then the render stage runs per split and the evaluate stage per split (every LOD in
+one process, as the workflow runs it; `--evaluate-per-lod`: one process per LOD, as the workflow did before), each
+as its own process with the workflow's command line, so old and new code (`--code`) run the same way. LPIPS-VGG
+and FID use stand-in random weights written to the work folder's torch hub cache (real weights cost the same time).
+
+`--breakdown-batches N` then times each part of an evaluate second alone, on N batches of novel-pose views with
+the device synchronised around each (`breakdown`): decoding ground truth and renders (one thread), the
+host-to-device copies (float32 from pageable memory as the old stage did, uint8 from page-locked as now), PSNR,
+SSIM, LPIPS-VGG (pair, and the render side against cached ground-truth taps) and the FID network, in ms per view.
 
     python benchmarks/eval_scale.py --workdir /tmp/evscale                     # CUDA: paper preset, whole protocol
     python benchmarks/eval_scale.py --workdir /tmp/evscale --device cpu --preset cpu-demo --fraction 0.004 \\
-        --width 333 --height 288 --iterations 20 --code /path/to/other/checkout
+        --width 333 --height 288 --iterations 20 --code /path/to/other/checkout --evaluate-per-lod
 """
 from __future__ import annotations
 
@@ -24,8 +33,10 @@ import shutil
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 import yaml
@@ -34,26 +45,32 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from data_scale import build_capture, tile_capture  # noqa: E402
 
 from pig.body.params import SmplxParams  # noqa: E402
+from pig.data.ground_truth import GT_MESHES  # noqa: E402
 from pig.config import load_preset  # noqa: E402
 
 CAMERAS, TRAIN_FRAMES, POSE_FRAMES = 24, 2000, 500  # config/datasets/thuman4.yaml
 HELD_OUT = "cam23"
 
 
-def protocol_capture(workdir: Path, fraction: float, width: int, height: int, generated: int, workers: int) -> Path:
+def protocol_capture(workdir: Path, fraction: float, width: int, height: int, generated: int, workers: int,
+                     upscale: int = 1) -> Path:
     """The THuman4-sized capture (see the module docstring); built once per size."""
     train, pose = max(2, round(TRAIN_FRAMES * fraction)), max(1, round(POSE_FRAMES * fraction))
-    target = workdir / f"capture_{train}+{pose}_{width}x{height}"
-    if (target / "report.json").is_file():
-        return target
-    source, _ = build_capture(workdir, CAMERAS, generated, width, height, workers)
-    tile_capture(source, target, train + pose)
-    params, ids = SmplxParams.load(target / "smplx.npz")
-    rng = np.random.default_rng(0)
-    pose_noise = np.zeros_like(params.full_pose)
-    pose_noise[:, 1:22] = rng.normal(0.0, 0.05, (len(ids), 21, 3))  # body joints: no two frames share a pose
-    SmplxParams(params.full_pose + pose_noise, params.betas, params.expression, params.transl).save(
-        target / "smplx.npz", frame_ids=ids)
+    if upscale > 1:  # every frame generated: distinct ground truth, distinct poses
+        target, _ = build_capture(workdir, CAMERAS, train + pose, width, height, workers, upscale)
+        (target / GT_MESHES).unlink(missing_ok=True)  # a real capture's evaluation: no true-mesh metrics
+    else:
+        target = workdir / f"capture_{train}+{pose}_{width}x{height}"
+        if (target / "report.json").is_file():
+            return target
+        source, _ = build_capture(workdir, CAMERAS, generated, width, height, workers)
+        tile_capture(source, target, train + pose)
+        params, ids = SmplxParams.load(target / "smplx.npz")
+        rng = np.random.default_rng(0)
+        pose_noise = np.zeros_like(params.full_pose)
+        pose_noise[:, 1:22] = rng.normal(0.0, 0.05, (len(ids), 21, 3))  # body joints: no two frames share a pose
+        SmplxParams(params.full_pose + pose_noise, params.betas, params.expression, params.transl).save(
+            target / "smplx.npz", frame_ids=ids)
     cameras = sorted(json.loads((target / "cameras.json").read_text()))
     if HELD_OUT not in cameras:
         raise SystemExit(f"{target}: expected cameras cam00..cam23, found {cameras}")
@@ -61,7 +78,31 @@ def protocol_capture(workdir: Path, fraction: float, width: int, height: int, ge
              "novel_view": {"cameras": [HELD_OUT], "frames": list(range(train))},
              "novel_pose": {"cameras": cameras, "frames": list(range(train, train + pose))}}
     (target / "split.json").write_text(json.dumps(split))
+    heldout_as_png(target, workers)
     return target
+
+
+def heldout_as_png(capture_dir: Path, workers: int) -> None:
+    """Store the held-out views that preprocess wrote as JPEG (training views of the generator's own split) as
+    lossless PNG of the same pixels, as preprocess stores held-out views: the evaluation decodes what it would."""
+    from pig.data.capture import Capture
+
+    capture = Capture.load(capture_dir, cache_mb=0)
+    views = {view for name in ("novel_view", "novel_pose") for view in capture.views(name)}
+    jpegs = [(cam, frame) for cam, frame in sorted(views) if (capture_dir / "images" / cam / f"{frame:08d}.jpg").is_file()]
+
+    def convert(view):
+        cam, frame = view
+        image = capture.image_u8(cam, frame)  # the JPEG's pixels as the capture reads them
+        path = capture_dir / "images" / cam / f"{frame:08d}"
+        if not cv2.imwrite(f"{path}.png", np.ascontiguousarray(image[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            raise SystemExit(f"{path}.png: could not be written")
+        Path(f"{path}.jpg").unlink()
+
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(convert, jpegs))
+    if jpegs:
+        print(f"{len(jpegs)} held-out views re-stored as PNG", flush=True)
 
 
 def stand_in_weights(torch_home: Path) -> None:
@@ -168,6 +209,71 @@ def codec_table(split_dir: Path, count: int) -> list[dict]:
     return rows
 
 
+def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, batches: int) -> list[dict]:
+    """Milliseconds per view of each part of an evaluate second, each timed alone on `batches` batches (the preset's
+    evaluate.batch_size) of the split's views, the device synchronised around each: decoding (one thread), the
+    host-to-device copies, and each metric. Runs this checkout's metrics in this process (TORCH_HOME set)."""
+    from pig.config import load_section
+    from pig.data.capture import Capture
+    from pig.data.render_store import RenderReader
+    from pig.metrics.fid import InceptionFeatures
+    from pig.metrics.lpips import LPIPS
+    from pig.metrics.psnr import psnr
+    from pig.metrics.ssim import ssim_map
+    from pig.stages.evaluate import EvaluateConfig, view_batches
+
+    cfg = load_section(load_preset(str(preset)), "evaluate", EvaluateConfig)
+    dev = torch.device(device)
+    capture = Capture.load(capture_dir, cache_mb=0)
+    level = max(int(p.name[3:]) for p in split_dir.glob("lod*"))
+    reader = RenderReader(split_dir / f"lod{level}")
+    lpips, inception = LPIPS(cfg.lpips_net).to(dev), InceptionFeatures().to(dev)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    times: dict[str, list[float]] = {}
+
+    def timed(name, work):
+        sync()
+        start = time.perf_counter()
+        result = work()
+        sync()
+        times.setdefault(name, []).append(time.perf_counter() - start)
+        return result
+
+    chosen = view_batches(capture, split_dir.name, cfg.batch_size)[:batches + 1]
+    for b, views in enumerate(chosen):  # the first batch warms up (cuDNN's choice of algorithms), not counted
+        truths = timed("decode ground truth (1 thread)", lambda: [capture.image_u8(*v) for v in views])
+        masks = timed("decode masks (1 thread)", lambda: [capture.mask(*v) for v in views])
+        renders = timed("decode renders (1 thread)", lambda: [reader.image_u8(*v) for v in views])
+        as_float = timed("uint8 to float32 + mask on the host (old)", lambda: (
+            np.stack(renders).astype(np.float32) / 255,
+            np.stack([t.astype(np.float32) / 255 * m[..., None] for t, m in zip(truths, masks)])))
+        timed("copy float32 pair, pageable (old)", lambda: [torch.from_numpy(a).to(dev) for a in as_float])
+        pinned = [torch.from_numpy(np.stack(a)).pin_memory() if dev.type == "cuda" else torch.from_numpy(np.stack(a))
+                  for a in (renders, truths, masks)]
+        on_device = timed("copy uint8 render + truth + mask, pinned (new)",
+                          lambda: [t.to(dev, non_blocking=True) for t in pinned])
+        x = (on_device[0].float() / 255).permute(0, 3, 1, 2)
+        y = (on_device[1].float() / 255 * on_device[2][..., None]).permute(0, 3, 1, 2)
+        with torch.no_grad():
+            timed("PSNR", lambda: psnr(x, y))
+            timed("SSIM", lambda: ssim_map(x, y).flatten(1).mean(1))
+            timed(f"LPIPS-{cfg.lpips_net} pair (old: per LOD)", lambda: lpips(x, y))
+            reference = timed(f"LPIPS-{cfg.lpips_net} truth taps (new: once)", lambda: lpips.reference(y))
+            timed(f"LPIPS-{cfg.lpips_net} render vs taps (new: per LOD)", lambda: lpips.distance(x, reference))
+            timed("FID Inception, one image set", lambda: inception(x))
+        del reference
+        if b == 0:
+            times.clear()
+    views = sum(len(v) for v in chosen[1:])
+    rows = [{"part": name, "ms_per_view": 1000 * sum(values) / views} for name, values in times.items()]
+    print(f"\nwhere an evaluate second goes: {views} views of {split_dir.name} lod{level}, batches of "
+          f"{cfg.batch_size}, device {device}, each part alone")
+    print(f"{'part':<48} {'ms/view':>9}")
+    for row in rows:
+        print(f"{row['part']:<48} {row['ms_per_view']:>9.2f}")
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", type=Path, required=True)
@@ -188,11 +294,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=int, default=None, help="evaluate.batch_size (preset's)")
     parser.add_argument("--codec-sample", type=int, default=0,
                         help="also time every codec on this many rendered novel-pose views (one thread)")
+    parser.add_argument("--upscale", type=int, default=1,
+                        help="generate every frame at 1/S of the size, upscaled (distinct ground truth)")
+    parser.add_argument("--evaluate-per-lod", action="store_true",
+                        help="one evaluate process per LOD (the workflow before one pass per split)")
+    parser.add_argument("--breakdown-batches", type=int, default=0,
+                        help="also time each part of an evaluate second alone on this many novel-pose batches")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     capture = protocol_capture(args.workdir, args.fraction, args.width, args.height, args.generated_frames,
-                               args.workers)
+                               args.workers, args.upscale)
     torch_home = args.workdir / "torch_home"
     stand_in_weights(torch_home)
     env = {**os.environ, "TORCH_HOME": str(torch_home), "PYTHONPATH": os.pathsep.join(
@@ -219,15 +331,21 @@ def main(argv: list[str] | None = None) -> int:
         levels = sorted(int(p.name[3:]) for p in renders.glob("lod*"))
         rows.append({"stage": "render", "split": name, "views": views * len(levels), **row,
                      "bytes": folder_bytes(renders)})
-        for level in levels:
+        for group in ([[level] for level in levels] if args.evaluate_per_lod else [levels]):
+            lods = [arg for level in group for arg in ("--lod", str(level))] if args.evaluate_per_lod else []
             row = run_stage("pig.stages.evaluate", ["--capture", str(capture), "--renders", str(renders), "--split",
-                                                    name, "--lod", str(level), "--output", str(results / "metrics"),
+                                                    name, *lods, "--output", str(results / "metrics"),
                                                     "--preset", str(preset)], env, args.workdir / "peak.json")
-            summary = json.loads((results / "metrics" / f"{name}_lod{level}.json").read_text())
-            rows.append({"stage": f"evaluate lod{level}", "split": name, "views": views, **row,
+            summaries = [json.loads((results / "metrics" / f"{name}_lod{level}.json").read_text()) for level in group]
+            record = results / "metrics" / f"{name}.json"  # the pass's record (absent from older code)
+            waits = json.loads(record.read_text()) if record.is_file() and not args.evaluate_per_lod else {}
+            rows.append({"stage": "evaluate " + (f"lod{group[0]}" if args.evaluate_per_lod else "all"), "split": name,
+                         "views": views * len(group), **row,
                          "bytes": sum((results / "metrics" / f"{name}_lod{level}{ext}").stat().st_size
-                                      for ext in (".csv", ".json")),
-                         "psnr": summary["psnr"], "lpips": summary["lpips"], "fid": summary["fid"]})
+                                      for level in group for ext in (".csv", ".json")),
+                         "psnr": [s["psnr"] for s in summaries], "lpips": [s["lpips"] for s in summaries],
+                         "fid": [s["fid"] for s in summaries], "decode_wait_s": waits.get("decode_wait_s"),
+                         "device_wait_s": waits.get("device_wait_s")})
     print(f"\ncapture {capture.name}: {args.width} x {args.height}, code {env['PYTHONPATH'].split(os.pathsep)[0]}, "
           f"device {args.device}, preset {args.preset}")
     print(f"{'stage':<14} {'split':<11} {'views':>7} {'wall s':>8} {'views/s':>8} {'RSS MiB':>8} {'GPU MiB':>8} "
@@ -238,9 +356,22 @@ def main(argv: list[str] | None = None) -> int:
               f"{row['bytes']:>12} {row['bytes'] / row['views']:>8.0f}")
     total = {key: sum(row[key] for row in rows) for key in ("wall_s", "bytes")}
     print(f"{'total':<14} {'':<11} {'':>7} {total['wall_s']:>8.1f} {'':>8} {'':>8} {'':>8} {total['bytes']:>12}")
+    for row in rows:
+        if row.get("decode_wait_s") is not None:
+            print(f"{row['stage']} {row['split']}: waited {row['decode_wait_s']:.1f} s for decoding, "
+                  f"{row['device_wait_s']:.1f} s for the device, of {row['wall_s']:.1f} s")
+        if "psnr" in row:
+            print(f"{row['stage']} {row['split']}: PSNR {', '.join(f'{v:.2f}' for v in row['psnr'])}; LPIPS "
+                  f"{', '.join(f'{v:.4f}' for v in row['lpips'])}; FID {', '.join(f'{v:.3f}' for v in row['fid'])}")
+    print(f"capture images (ground truth and training): {folder_bytes(capture / 'images')} bytes")
     codecs = codec_table(results / "renders" / "novel_pose", args.codec_sample) if args.codec_sample else []
+    parts = []
+    if args.breakdown_batches:
+        os.environ["TORCH_HOME"] = str(torch_home)  # the stand-in weights
+        parts = breakdown(capture, results / "renders" / "novel_pose", preset, args.device, args.breakdown_batches)
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "codecs": codecs, "args": {k: str(v) for k, v in vars(args).items()}}, indent=1))
+        args.json.write_text(json.dumps({"rows": rows, "codecs": codecs, "breakdown": parts,
+                                         "args": {k: str(v) for k, v in vars(args).items()}}, indent=1))
     return 0
 
 
