@@ -159,6 +159,10 @@ class BatchLoader:
 
     def __iter__(self):
         with ThreadPoolExecutor(self.workers, thread_name_prefix="evaluate-decode") as pool:
+            # Each (LOD, camera)'s chunk index built once, in parallel, before the views race to build it.
+            cameras = sorted({camera for batch in self.batches for camera, _ in batch})
+            for job in [pool.submit(reader.has, camera, -1) for reader in self.readers.values() for camera in cameras]:
+                job.result()
             pending = [self._submit(pool, batch) for batch in self.batches[:self.ahead + 1]]
             for b in range(len(self.batches)):
                 loaded, jobs = pending.pop(0)
