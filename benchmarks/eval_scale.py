@@ -342,7 +342,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append({"stage": "evaluate " + (f"lod{group[0]}" if args.evaluate_per_lod else "all"), "split": name,
                          "views": views * len(group), **row,
                          "bytes": sum((results / "metrics" / f"{name}_lod{level}{ext}").stat().st_size
-                                      for level in group for ext in (".csv", ".json")),
+                                      for level in group for ext in (".csv", ".json"))
+                                  + (record.stat().st_size if waits else 0),
                          "psnr": [s["psnr"] for s in summaries], "lpips": [s["lpips"] for s in summaries],
                          "fid": [s["fid"] for s in summaries], "decode_wait_s": waits.get("decode_wait_s"),
                          "device_wait_s": waits.get("device_wait_s")})
