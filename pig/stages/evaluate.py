@@ -136,8 +136,8 @@ def view_batches(capture, split: str, batch_size: int) -> list[list[tuple[str, i
 
 @dataclass
 class LoadedBatch:
-    """One batch as uint8 tensors on the host: masked-out ground truth not yet applied (B, H, W, 3), masks (B, H, W)
-    bool, and each LOD's renders (B, H, W, 3)."""
+    """One batch as tensors on the host: the ground truth before masking (B, H, W, 3) uint8, its masks (B, H, W)
+    bool, and each LOD's renders (B, H, W, 3) uint8."""
 
     views: list[tuple[str, int]]
     truths: torch.Tensor
