@@ -265,12 +265,31 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
         if b == 0:
             times.clear()
     views = sum(len(v) for v in chosen[1:])
-    rows = [{"part": name, "ms_per_view": 1000 * sum(values) / views} for name, values in times.items()]
+    ms = {name: 1000 * sum(values) / views for name, values in times.items()}
+    rows = [{"part": name, "ms_per_view": value} for name, value in ms.items()]
     print(f"\nwhere an evaluate second goes: {views} views of {split_dir.name} lod{level}, batches of "
           f"{cfg.batch_size}, device {device}, each part alone")
     print(f"{'part':<48} {'ms/view':>9}")
     for row in rows:
         print(f"{row['part']:<48} {row['ms_per_view']:>9.2f}")
+    # Per view score (one view at one LOD) at this split's LOD count L: the old jobs redid the ground truth's
+    # share at every LOD; the pass does it once per view. Host work runs on evaluate.encode_workers threads.
+    lods = len(list(split_dir.glob("lod*")))
+    net = cfg.lpips_net
+    truth_host = ms["decode ground truth (1 thread)"] + ms["decode masks (1 thread)"]
+    old_host = truth_host + ms["decode renders (1 thread)"] + ms["uint8 to float32 + mask on the host (old)"]
+    new_host = truth_host / lods + ms["decode renders (1 thread)"]
+    metrics = ms["PSNR"] + ms["SSIM"]
+    old_device = (ms["copy float32 pair, pageable (old)"] + metrics + ms[f"LPIPS-{net} pair (old: per LOD)"]
+                  + 2 * ms["FID Inception, one image set"])
+    new_device = (ms["copy uint8 render + truth + mask, pinned (new)"] + metrics
+                  + ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
+                  + (1 + 1 / lods) * ms["FID Inception, one image set"])
+    for name, host, on_device in (("old", old_host, old_device), ("new", new_host, new_device)):
+        print(f"{name}, per view score at {lods} LODs: host {host:.2f} ms on one thread "
+              f"({host / cfg.encode_workers:.2f} ms on {cfg.encode_workers}), device {on_device:.2f} ms")
+        rows.append({"part": f"{name} per view score: host, one thread", "ms_per_view": host})
+        rows.append({"part": f"{name} per view score: device", "ms_per_view": on_device})
     return rows
 
 
