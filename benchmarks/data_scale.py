@@ -44,15 +44,17 @@ def build_capture(workdir: Path, cameras: int, frames: int, width: int, height: 
     """Generate and preprocess a capture of `width` x `height` views; returns its folder and the preprocess
     throughput. With `upscale` s > 1 the generator ray-casts s x s times fewer pixels (`width` / s x `height` / s,
     which s must divide) and preprocess resizes them to full size (bilinear, masks thresholded, K scaled): every frame
-    is its own pose's image, distinct from all others, at ~1/s^2 of the generator's cost (smoother than a
-    full-size render, so its PNGs are smaller)."""
+    is its own pose's image (30 frames a second of motion), distinct from all others, at ~1/s^2 of the generator's
+    cost (smoother than a full-size render, so its PNGs are smaller)."""
     if width % upscale or height % upscale:
         raise SystemExit(f"--upscale {upscale} must divide the size {width} x {height}")
     tag = f"{cameras}x{frames}_{width}" + (f"_up{upscale}" if upscale > 1 else "")
     raw, capture = workdir / f"raw_{tag}", workdir / f"capture_{tag}"
     if not (capture / "report.json").is_file():
+        # Upscaled captures stand for THuman4's: 30 frames a second of motion, so neighbouring frames differ.
+        timing = {"duration_s": frames / 30} if upscale > 1 else {}
         cfg = SyntheticConfig(cameras=cameras, frames=frames, width=width // upscale, height=height // upscale,
-                              workers=workers)
+                              workers=workers, **timing)
         start = time.perf_counter()
         generate_capture(raw, cfg, overwrite=True, progress=False)
         print(f"generate {cameras} x {frames} at {cfg.width} x {cfg.height}: {time.perf_counter() - start:.1f} s",

@@ -105,6 +105,19 @@ def heldout_as_png(capture_dir: Path, workers: int) -> None:
         print(f"{len(jpegs)} held-out views re-stored as PNG", flush=True)
 
 
+def distinct_truths(capture_dir: Path, workers: int) -> tuple[int, int]:
+    """(distinct, all) held-out ground-truth images, told apart by their PNG bytes (one encoder and level: equal
+    pixels give equal bytes)."""
+    import hashlib
+
+    split = json.loads((capture_dir / "split.json").read_text())
+    paths = [capture_dir / "images" / cam / f"{frame:08d}.png" for name in ("novel_view", "novel_pose")
+             for cam in split[name]["cameras"] for frame in split[name]["frames"]]
+    with ThreadPoolExecutor(workers) as pool:
+        digests = list(pool.map(lambda path: hashlib.sha256(path.read_bytes()).digest(), paths))
+    return len(set(digests)), len(digests)
+
+
 def stand_in_weights(torch_home: Path) -> None:
     """Random LPIPS-VGG (VGG-16 features by torchvision's keys + lpips linear layers) and a TorchScript
     Inception stand-in in `torch_home`/hub/checkpoints under the published names."""
@@ -324,6 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     args.workdir.mkdir(parents=True, exist_ok=True)
     capture = protocol_capture(args.workdir, args.fraction, args.width, args.height, args.generated_frames,
                                args.workers, args.upscale)
+    distinct, held_out = distinct_truths(capture, args.workers)
+    print(f"distinct held-out ground-truth images: {distinct} of {held_out}", flush=True)
     torch_home = args.workdir / "torch_home"
     stand_in_weights(torch_home)
     env = {**os.environ, "TORCH_HOME": str(torch_home), "PYTHONPATH": os.pathsep.join(
