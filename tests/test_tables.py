@@ -40,6 +40,11 @@ def _summary(root: Path, subject: str, variant: str, split: str, lod: int, regio
         data.update({key: _value(key, variant, subject, split, lod) for key in REGION_KEYS})
     data.update(extra)
     path.write_text(json.dumps(data))
+    # The evaluate stage's record of the split's pass (the workflow's output of its job), listing the LODs so far.
+    record = path.parent / f"{split}.json"
+    levels = sorted({lod, *(json.loads(record.read_text())["levels"] if record.is_file() else [])})
+    record.write_text(json.dumps({"split": split, "levels": levels,
+                                  "summaries": [f"{split}_lod{level}.json" for level in levels]}))
     return path
 
 
