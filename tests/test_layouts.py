@@ -374,3 +374,21 @@ def test_reader_options_and_subject_paths_are_checked():
     for bad in ("../Actor01", "/abs/path", "Actor01//x", "Actor01/.."):
         with pytest.raises(CaptureError, match="d.yaml"):
             subject_path({"subject_paths": {"s": bad}}, "s", "d.yaml")
+
+
+def test_doctor_sizes_each_layout_from_its_calibration(trees, pinhole):
+    """`pig doctor --dataset` sizes a capture of each layout from its calibration and parameters (first subject)."""
+    from pig import doctor
+    from pig.config import load_preset
+
+    raw, thuman = pinhole
+    sizes = {(cam.width, cam.height) for cam in thuman.cameras.values()}
+    datasets = {"easymocap": {"root": str(trees["easymocap"].parent), "subjects": ["em"]},
+                "actorshq": {"root": str(trees["actorshq"].parents[1]), "subjects": ["a1s1"],
+                             "subject_paths": {"a1s1": "Actor01/Sequence1"}, "reader": {"scale": "4x"}},
+                "avatarrex": {"root": str(trees["avatarrex"].parent), "subjects": ["arx"]}}
+    for layout, dataset in datasets.items():
+        geometry = doctor.nominal_geometry(load_preset("test"), {"name": f"my_{layout}", "format": layout, **dataset})
+        assert geometry is not None, layout
+        assert len(geometry.cameras) == len(thuman.cameras) and set(geometry.cameras.values()) == sizes
+        assert geometry.frames == thuman.frames

@@ -109,6 +109,21 @@ def read_calibration(path: Path) -> dict[str, RawCamera]:
     return cameras
 
 
+def geometry(root: str | Path, options: dict) -> tuple[dict[str, tuple[int, int]], list[int]]:
+    """(camera -> (width, height), frame ids) from calibration.csv and the parameters' row count, for `pig doctor`."""
+    folder = scale_folder(root, options.get("scale"))
+    cameras = read_calibration(folder / CALIBRATION)
+    return {name: (cam.width, cam.height) for name, cam in cameras.items()}, list(range(frame_count(params_file(folder))))
+
+
+def frame_count(path: Path) -> int:
+    """Frames of a THuman4-form smpl_params.npz, from its `global_orient` alone."""
+    try:
+        return len(read_npz(path, ParamsError, "SMPL-X parameters", keys=("global_orient",))["global_orient"])
+    except (KeyError, ParamsError) as err:
+        raise CaptureError(f"{path}: no readable 'global_orient' ({err})") from None
+
+
 class ActorsHQCapture(FramesCapture):
     """One ActorsHQ sequence at one scale; `root` is the sequence folder (`Actor01/Sequence1`) or its scale folder."""
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from pig.body.npz import read_npz
 from pig.body.params import THUMAN_KEYS, ParamsError, SmplxParams, from_thuman
+from pig.data.actorshq import frame_count
 from pig.data.frame_sources import FramesCapture, camera_frames, read_missing_list
 from pig.data.raw import CaptureError
 from pig.data.thuman4 import read_calibration
@@ -33,6 +34,14 @@ def required_files(root: str | Path) -> list[Path]:
     if missing:
         raise CaptureError(f"AvatarReX subject folder {root} is incomplete: missing {missing}; expected {LAYOUT}")
     return [root / CALIBRATION, root / PARAMS]
+
+
+def geometry(root: str | Path, options: dict) -> tuple[dict[str, tuple[int, int]], list[int]]:
+    """(camera -> (width, height), frame ids) from calibration_full.json and the parameters' row count, for
+    `pig doctor`."""
+    cameras = read_calibration(Path(root) / CALIBRATION, dist_optional=True)
+    return ({name: (cam.width, cam.height) for name, cam in cameras.items()},
+            list(range(frame_count(Path(root) / PARAMS))))
 
 
 class AvatarReXCapture(FramesCapture):

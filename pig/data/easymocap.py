@@ -217,7 +217,7 @@ class EasyMocapCapture(FramesCapture):
         self.frames = sorted(json_files)
         self.params = _convert([read_fit(json_files[f], person) for f in self.frames], model, flat_hand_mean,
                                self.source / params)
-        self.cameras = read_cameras(self.source, self._first_image_size)
+        self.cameras = read_cameras(self.source, lambda camera: first_image_size(self.source, camera))
         count = self.frames[-1] + 1
         images, masks_ = {}, {}
         for name, cam in self.cameras.items():
@@ -227,22 +227,32 @@ class EasyMocapCapture(FramesCapture):
                                          count, f"camera {name}'s masks", exact=False)
         self._attach(images, masks_, set(), extra_frames=True)
 
-    def _first_image_size(self, camera: str) -> tuple[int, int]:
-        """(width, height) from the header of a camera's first image, or from its video."""
-        folder = self.source / "images" / camera
-        video = video_in_place_of(folder)
-        if video is not None:
-            return video_size(video)
-        files = FrameFiles(folder, _FRAME, "%06d.jpg").files if folder.is_dir() else {}
-        if not files:
-            raise CaptureError(f"{folder}: no images to take the size of camera {camera} from (intri.yml has no "
-                               f"W_{camera}, H_{camera}); expected {LAYOUT}")
-        path = files[min(files)]
-        with open(path, "rb") as handle:
-            size = declared_size(handle.read(1 << 20))
-        if size is None:
-            raise CaptureError(f"{path}: no image size in its header (intri.yml has no W_{camera}, H_{camera})")
-        return size
+
+def first_image_size(root: Path, camera: str) -> tuple[int, int]:
+    """(width, height) from the header of a camera's first image, or from its video."""
+    folder = root / "images" / camera
+    video = video_in_place_of(folder)
+    if video is not None:
+        return video_size(video)
+    files = FrameFiles(folder, _FRAME, "%06d.jpg").files if folder.is_dir() else {}
+    if not files:
+        raise CaptureError(f"{folder}: no images to take the size of camera {camera} from (intri.yml has no "
+                           f"W_{camera}, H_{camera}); expected {LAYOUT}")
+    path = files[min(files)]
+    with open(path, "rb") as handle:
+        size = declared_size(handle.read(1 << 20))
+    if size is None:
+        raise CaptureError(f"{path}: no image size in its header (intri.yml has no W_{camera}, H_{camera})")
+    return size
+
+
+def geometry(root: str | Path, options: dict) -> tuple[dict[str, tuple[int, int]], list[int]]:
+    """(camera -> (width, height), frame ids with a fit) from the calibration and the fits' names alone, for
+    `pig doctor`; `options`: the dataset's reader options."""
+    root = Path(root)
+    cameras = read_cameras(root, lambda camera: first_image_size(root, camera))
+    frames = sorted(_json_files(root / options.get("params", "smplx")))
+    return {name: (cam.width, cam.height) for name, cam in cameras.items()}, frames
 
 
 def _json_files(folder: Path) -> dict[int, Path]:

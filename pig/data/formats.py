@@ -23,6 +23,8 @@ class CaptureFormat:
     needs_body_model: bool = False
     # Reader options a dataset YAML may set under `reader:` (keyword arguments of `open`), with their types.
     options: dict[str, tuple[type, ...]] = field(default_factory=dict)
+    # (root, reader options) -> (camera -> (width, height), frame ids) without reading images (`pig doctor`).
+    geometry: Callable[[Path, dict], tuple[dict[str, tuple[int, int]], list[int]]] | None = None
 
 
 FORMATS: dict[str, CaptureFormat] = {
@@ -31,10 +33,11 @@ FORMATS: dict[str, CaptureFormat] = {
     "easymocap": CaptureFormat(open=easymocap.EasyMocapCapture, required_files=easymocap.required_files,
                                needs_body_model=True,
                                options={"masks": (str,), "params": (str,), "person": (int, type(None)),
-                                        "flat_hand_mean": (bool,)}),
+                                        "flat_hand_mean": (bool,)}, geometry=easymocap.geometry),
     "actorshq": CaptureFormat(open=actorshq.ActorsHQCapture, required_files=actorshq.required_files,
-                              options={"scale": (str, type(None))}),
-    "avatarrex": CaptureFormat(open=avatarrex.AvatarReXCapture, required_files=avatarrex.required_files),
+                              options={"scale": (str, type(None))}, geometry=actorshq.geometry),
+    "avatarrex": CaptureFormat(open=avatarrex.AvatarReXCapture, required_files=avatarrex.required_files,
+                               geometry=avatarrex.geometry),
 }
 
 
