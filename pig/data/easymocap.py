@@ -25,7 +25,8 @@ import torch
 from pig.body.easymocap import hand_components_of, to_standard
 from pig.body.model import BodyModel
 from pig.body.params import ParamsError, SmplxParams
-from pig.data.frame_sources import FramesCapture, FrameFiles, camera_frames, video_in_place_of, video_size
+from pig.data.frame_sources import (FramesCapture, FrameFiles, camera_frames, relative_folder, video_in_place_of,
+                                     video_size)
 from pig.data.images import declared_size
 from pig.data.raw import CaptureError, RawCamera
 from pig.data.thuman4 import camera_entry
@@ -205,7 +206,7 @@ class EasyMocapCapture(FramesCapture):
                  params: str = "smplx", person: int | None = None, flat_hand_mean: bool = True):
         self.source = Path(root)
         for option, value in (("masks", masks), ("params", params)):
-            safe_name(value, f"reader option {option}", f"EasyMocap sequence {root}", CaptureError)
+            relative_folder(value, f"reader option {option}", f"EasyMocap sequence {root}")
         required_files(self.source)
         if body_model is None:
             raise CaptureError(f"{self.source}: EasyMocap fits need the SMPL-X model they were made with "

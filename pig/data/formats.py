@@ -11,7 +11,7 @@ from typing import Any, Callable
 
 from pig.data import actorshq, avatarrex, dna, easymocap, thuman4
 from pig.data.raw import CaptureError, RawCapture
-from pig.names import safe_name
+from pig.data.frame_sources import relative_folder
 
 
 @dataclass(frozen=True)
@@ -77,10 +77,4 @@ def subject_path(dataset: dict[str, Any], subject: str, where: str) -> str:
     paths = dataset.get("subject_paths") or {}
     if not isinstance(paths, dict):
         raise CaptureError(f"{where}: `subject_paths` must map subject names to folders under `root`, found {paths!r}")
-    value = paths.get(subject, subject)
-    if not isinstance(value, str) or not value:
-        raise CaptureError(f"{where}: `subject_paths.{subject}` must be a relative folder path, found {value!r}")
-    parts = value.split("/")
-    for part in parts:
-        safe_name(part, f"folder in `subject_paths.{subject}` ({value!r})", where, CaptureError)
-    return "/".join(parts)
+    return relative_folder(paths.get(subject, subject), f"`subject_paths.{subject}`", where)

@@ -21,6 +21,7 @@ from pig.data.images import read_image
 from pig.data.raw import CaptureError
 from pig.data.rectify import check_matte
 from pig.inputs import require_regular_file
+from pig.names import safe_name
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -263,6 +264,16 @@ class FramesCapture:
         if image.shape[:2] != (cam.height, cam.width):
             raise CaptureError(f"{source.path} (frame {frame}): image is {image.shape[1]}x{image.shape[0]} (WxH), but "
                                f"the calibration gives {cam.width}x{cam.height} for camera {camera}")
+
+
+def relative_folder(value, what: str, where: str) -> str:
+    """`value` if it is a relative folder path whose every component is one safe name (never absolute, never
+    `..`, never hidden), else CaptureError naming `where` and `what` it is."""
+    if not isinstance(value, str) or not value:
+        raise CaptureError(f"{where}: {what} must be a relative folder path, found {value!r}")
+    for part in value.split("/"):
+        safe_name(part, f"folder in {what} ({value!r})", where, CaptureError)
+    return value
 
 
 def brief_range(frames: list[int]) -> str:
