@@ -392,3 +392,25 @@ def test_doctor_sizes_each_layout_from_its_calibration(trees, pinhole):
         assert geometry is not None, layout
         assert len(geometry.cameras) == len(thuman.cameras) and set(geometry.cameras.values()) == sizes
         assert geometry.frames == thuman.frames
+
+
+def test_preprocess_decodes_each_video_once(pinhole, tmp_path):
+    """The preprocess stage's threads ask for a video's frames nearly in order: each is decoded once, never from the
+    start again, and the written capture equals the one from the frame folders."""
+    from pig.data.splits import SplitConfig
+    from pig.stages.preprocess import PreprocessConfig, preprocess_capture
+
+    raw, thuman = pinhole
+    outputs = {}
+    for video in (False, True):
+        capture = AvatarReXCapture(write_avatarrex(thuman, tmp_path / f"arx{video}", video=video))
+        out = tmp_path / f"capture{video}"
+        preprocess_capture(capture, out, PreprocessConfig(workers=4, train_encoding="png"), raw / "body_model.npz",
+                           SplitConfig(novel_view_count=1), "arx", progress=False)
+        if video:
+            sources = [*capture._images.values(), *capture._masks.values()]
+            assert all(isinstance(s, VideoFrames) and s.restarts == 0 for s in sources)
+        outputs[video] = out
+    for path in sorted(outputs[False].rglob("*.png")):
+        twin = outputs[True] / path.relative_to(outputs[False])
+        np.testing.assert_array_equal(cv2.imread(str(twin), cv2.IMREAD_UNCHANGED), cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
