@@ -84,12 +84,14 @@ def main() -> None:
                     seconds += time.perf_counter() - start
                     images += int((image != thuman.read_image(ref, frame)).any(axis=2).sum())
                     ref_mask = thuman.read_mask(ref, frame)
-                    masks += int(((mask > 128) != (ref_mask > 128)).sum()) if threshold else int((mask != ref_mask).sum())
+                    differ = (mask > 128) != (ref_mask > 128) if threshold else mask != ref_mask
+                    masks += int(differ.sum())
             ms = 1000 * seconds / (len(cams) * len(capture.frames))
             pose = np.abs(capture.params.full_pose - thuman.params.full_pose).max()
             transl = np.abs(capture.params.transl - thuman.params.transl).max()
             print(f"| {name} | {'FFV1 video' if video else 'PNG frames'} | {cam_diff['K']:.1e} | {cam_diff['R']:.1e} | "
-                  f"{cam_diff['T']:.1e} | {pose:.1e} | {transl:.1e} | {np.abs(posed - truth).max():.1e} | {shift:.1e} | "
+                  f"{cam_diff['T']:.1e} | {pose:.1e} | {transl:.1e} | {np.abs(posed - truth).max():.1e} | "
+                  f"{shift:.1e} | "
                   f"{images} | {masks} | {ms:.2f} |")
 
 

@@ -139,7 +139,8 @@ def test_malformed_components_are_refused(arrays):
     bad = dict(arrays, hands_componentsl=np.zeros((6, 44)))
     with pytest.raises(BodyModelError, match="'hands_componentsl' has shape"):
         BodyModel(bad, source="bad.npz")
-    fewer = dict(arrays, hands_componentsl=arrays["hands_componentsl"][:6], hands_componentsr=arrays["hands_componentsr"][:6])
+    fewer = dict(arrays, hands_componentsl=arrays["hands_componentsl"][:6],
+                 hands_componentsr=arrays["hands_componentsr"][:6])
     model = BodyModel(fewer, source="six.npz", dtype=torch.float64)
     with pytest.raises(ParamsError, match="only 6 hand components"):
         to_standard(*_random_fit(np.random.default_rng(1), 2, 66 + 2 * 12 + 9), model)

@@ -8,7 +8,6 @@ EasyMocap's YAML is read here with cv2.FileStorage directly. Hostile trees must 
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -135,7 +134,8 @@ def test_easymocap_hand_pca_and_sizes_from_the_images(distorted, model, tmp_path
     raw, thuman = distorted
     root = write_easymocap(thuman, tmp_path / "seq", model, components=6, sizes=False, rotation_matrix=False)
     capture = EasyMocapCapture(root, body_model=model)
-    assert [(c.width, c.height) for c in capture.cameras.values()] == [(c.width, c.height) for c in thuman.cameras.values()]
+    sizes = [(c.width, c.height) for c in capture.cameras.values()]
+    assert sizes == [(c.width, c.height) for c in thuman.cameras.values()]
     body = np.r_[0:25]
     np.testing.assert_allclose(capture.params.full_pose[:, body], thuman.params.full_pose[:, body], atol=1e-9)
     np.testing.assert_allclose(capture.params.transl, thuman.params.transl, atol=1e-9)
@@ -177,8 +177,8 @@ def _sees_the_point_where_worked_out(capture) -> None:
 def test_actorshq_fixture_by_hand(tmp_path):
     """calibration.csv holds camera to world: the camera's axes are the world's turned by -90 degrees about y
     (Rodrigues (0, -pi/2, 0)), the inverse of the world-to-camera rotation above, and its centre is
-    c = -R^T T = (2, 0, 0) (it looks along R^T (0, 0, 1) = -x, at the origin). Intrinsics are fractions: fx 0.5 of the width 100, fy 1.0 of the height 50, the
-    principal point (0.5, 0.5) of each."""
+    c = -R^T T = (2, 0, 0) (it looks along R^T (0, 0, 1) = -x, at the origin). Intrinsics are fractions: fx 0.5
+    of the width 100, fy 1.0 of the height 50, the principal point (0.5, 0.5) of each."""
     scale = tmp_path / "Actor01" / "Sequence1" / "4x"
     scale.mkdir(parents=True)
     (scale / "calibration.csv").write_text("name,w,h,rx,ry,rz,tx,ty,tz,fx,fy,px,py\n"
@@ -334,7 +334,8 @@ def test_video_beside_frames_and_video_of_another_size(pinhole, tmp_path):
 def test_huge_declared_sizes_are_not_read(trees, model):
     root = trees["easymocap"]
     intri = root / "intri.yml"
-    _edit_text(intri, "K_cam00: !!opencv-matrix\n  rows: 3\n  cols: 3", "K_cam00: !!opencv-matrix\n  rows: 300000\n  cols: 300000")
+    _edit_text(intri, "K_cam00: !!opencv-matrix\n  rows: 3\n  cols: 3",
+               "K_cam00: !!opencv-matrix\n  rows: 300000\n  cols: 300000")
     with pytest.raises(CaptureError, match="`K_cam00` declares 90000000000 values"):
         EasyMocapCapture(root, body_model=model)
     big = root / "smplx" / "000001.json"
@@ -413,4 +414,5 @@ def test_preprocess_decodes_each_video_once(pinhole, tmp_path):
         outputs[video] = out
     for path in sorted(outputs[False].rglob("*.png")):
         twin = outputs[True] / path.relative_to(outputs[False])
-        np.testing.assert_array_equal(cv2.imread(str(twin), cv2.IMREAD_UNCHANGED), cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+        np.testing.assert_array_equal(cv2.imread(str(twin), cv2.IMREAD_UNCHANGED),
+                                      cv2.imread(str(path), cv2.IMREAD_UNCHANGED))

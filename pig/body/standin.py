@@ -356,7 +356,8 @@ def _hand_components(seed: int) -> dict[str, np.ndarray]:
     generator leaves the other arrays as they were before the stand-in had components."""
     rng = np.random.default_rng([seed, 45])
     scales = np.linspace(1.0, 0.2, 45)[:, None]
-    return {key: scales * np.linalg.qr(rng.normal(size=(45, 45)))[0].T for key in ("hands_componentsl", "hands_componentsr")}
+    return {key: scales * np.linalg.qr(rng.normal(size=(45, 45)))[0].T
+            for key in ("hands_componentsl", "hands_componentsr")}
 
 
 def write_standin(path: str | Path, seed: int = 0) -> Path:

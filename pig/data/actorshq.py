@@ -81,7 +81,8 @@ def read_calibration(path: Path) -> dict[str, RawCamera]:
         raise CaptureError(f"{path}: {path.stat().st_size:,} bytes, more than a calibration holds; not read")
     rows = list(csv.reader(io.StringIO(path.read_text(errors="replace"))))
     if not rows or tuple(c.strip() for c in rows[0]) != COLUMNS:
-        raise CaptureError(f"{path}: expected the header {','.join(COLUMNS)}, found {','.join(rows[0]) if rows else 'nothing'}")
+        found = ",".join(rows[0]) if rows else "nothing"
+        raise CaptureError(f"{path}: expected the header {','.join(COLUMNS)}, found {found}")
     cameras: dict[str, RawCamera] = {}
     for number, row in enumerate(rows[1:], start=2):
         if not row:
@@ -113,7 +114,8 @@ def geometry(root: str | Path, options: dict) -> tuple[dict[str, tuple[int, int]
     """(camera -> (width, height), frame ids) from calibration.csv and the parameters' row count, for `pig doctor`."""
     folder = scale_folder(root, options.get("scale"))
     cameras = read_calibration(folder / CALIBRATION)
-    return {name: (cam.width, cam.height) for name, cam in cameras.items()}, list(range(frame_count(params_file(folder))))
+    sizes = {name: (cam.width, cam.height) for name, cam in cameras.items()}
+    return sizes, list(range(frame_count(params_file(folder))))
 
 
 def frame_count(path: Path) -> int:

@@ -17,13 +17,10 @@ import json
 import re
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import torch
-
-from pig.body.easymocap import hand_components_of, to_standard
-from pig.body.model import BodyModel
 from pig.body.params import ParamsError, SmplxParams
 from pig.data.frame_sources import (FramesCapture, FrameFiles, camera_frames, relative_folder, video_in_place_of,
                                      video_size)
@@ -32,6 +29,9 @@ from pig.data.raw import CaptureError, RawCamera
 from pig.data.thuman4 import camera_entry
 from pig.inputs import require_regular_file
 from pig.names import safe_name
+
+if TYPE_CHECKING:
+    from pig.body.model import BodyModel
 
 INTRI, EXTRI = "intri.yml", "extri.yml"
 LAYOUT = ("intri.yml, extri.yml (OpenCV FileStorage), images/<cam>/%06d.jpg, <masks>/<cam>/%06d.png, "
@@ -95,7 +95,8 @@ class _Storage:
             raise CaptureError(f"{self.path}: `{key}` is not an OpenCV matrix (!!opencv-matrix with rows, cols, data)")
         declared = int(node.getNode("rows").real()) * int(node.getNode("cols").real())
         if declared not in sizes:
-            raise CaptureError(f"{self.path}: `{key}` declares {declared} values, expected {' or '.join(map(str, sizes))}")
+            raise CaptureError(f"{self.path}: `{key}` declares {declared} values, expected "
+                               f"{' or '.join(map(str, sizes))}")
         value = node.mat()
         if value is None or value.size not in sizes or not np.all(np.isfinite(value)):
             raise CaptureError(f"{self.path}: `{key}` must hold {' or '.join(map(str, sizes))} finite numbers")
@@ -187,6 +188,8 @@ def read_fit(path: Path, person: int | None) -> dict[str, np.ndarray]:
                                f"shape {value.shape}")
         fit[key] = value
     fit.setdefault("expression", np.zeros(0))
+    from pig.body.easymocap import hand_components_of  # torch on reading only: the workflow's DAG imports this module
+
     try:
         hand_components_of(fit["poses"].size, str(path))  # a length of no SMPL-X form, named with its file
     except ParamsError as err:
@@ -211,6 +214,10 @@ class EasyMocapCapture(FramesCapture):
         if body_model is None:
             raise CaptureError(f"{self.source}: EasyMocap fits need the SMPL-X model they were made with "
                                "(`body_model` in the dataset YAML or --body-model)")
+        import torch  # on reading only: the workflow's DAG imports this module (for `required_files`) without torch
+
+        from pig.body.model import BodyModel
+
         model = body_model if isinstance(body_model, BodyModel) else BodyModel.from_file(body_model, torch.float64)
         json_files = _json_files(self.source / params)
         if not json_files:
@@ -270,6 +277,8 @@ def _json_files(folder: Path) -> dict[int, Path]:
 
 
 def _convert(fits: list[dict], model: BodyModel, flat_hand_mean: bool, folder: Path) -> SmplxParams:
+    from pig.body.easymocap import to_standard  # torch on reading only, as above
+
     for key in ("poses", "shapes", "expression"):
         lengths = sorted({fit[key].size for fit in fits})
         if len(lengths) > 1:
