@@ -129,7 +129,7 @@ def easymocap_fit(capture: Thuman4Capture, model: BodyModel, components: int) ->
 
 def write_easymocap(capture: Thuman4Capture, root: Path, model: BodyModel, components: int = 6,
                     video: bool = False, sizes: bool = True, rotation_matrix: bool = True) -> Path:
-    """`root/{intri.yml, extri.yml, images/<cam>/%06d.png, mask/<cam>/%06d.png (0/1), smplx/%06d.json}`; `sizes`:
+    """`root/{intri.yml, extri.yml, images/<cam>/%06d.png, mask-schp/<cam>/%06d_0.png (0/1), smplx/%06d.json}`; `sizes`:
     write H_/W_; `rotation_matrix`: write Rot_ beside the Rodrigues R_ (as EasyMocap's write_camera does)."""
     root.mkdir(parents=True, exist_ok=True)
     names = list(capture.cameras)
@@ -148,7 +148,7 @@ def write_easymocap(capture: Thuman4Capture, root: Path, model: BodyModel, compo
     for name in names:
         _write_frames(root / "images" / name, _images(capture, name), lambda f: f"{f:06d}.png", video)
         masks = {f: (m > 128).astype(np.uint8) for f, m in _masks(capture, name).items()}  # SCHP-like labels 0/1
-        _write_frames(root / "mask" / name, masks, lambda f: f"{f:06d}.png", video)
+        _write_frames(root / "mask-schp" / name, masks, lambda f: f"{f:06d}_0.png", video)
     (root / "smplx").mkdir(exist_ok=True)
     for frame, fit in zip(capture.frames, easymocap_fit(capture, model, components)):
         (root / "smplx" / f"{frame:06d}.json").write_text(json.dumps([fit]))

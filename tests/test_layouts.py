@@ -216,7 +216,7 @@ def test_easymocap_fixture_by_hand(tmp_path, model):
         '%YAML:1.0\r\n---\r\nnames:\r\n  - "01"\r\nR_01: !!opencv-matrix\r\n  rows: 3\r\n  cols: 1\r\n  dt: d\r\n'
         f'  data: [0.0, {np.pi / 2!r}, 0.0]\r\nT_01: !!opencv-matrix\r\n  rows: 3\r\n  cols: 1\r\n  dt: d\r\n'
         '  data: [0.0, 0.0, 2.0]\r\n')
-    _one_frame(tmp_path / "images" / "01", "000000.jpg", tmp_path / "mask" / "01", "000000.png", mask_value=1)
+    _one_frame(tmp_path / "images" / "01", "000000.jpg", tmp_path / "mask-schp" / "01", "000000.png", mask_value=1)
     (tmp_path / "smplx").mkdir()
     (tmp_path / "smplx" / "000000.json").write_text(json.dumps([{
         "id": 0, "Rh": [[0.0, np.pi, 0.0]], "Th": [[0.5, 1.0, -0.25]], "poses": [[0.0] * 87], "shapes": [[0.0] * 10],
@@ -416,3 +416,21 @@ def test_preprocess_decodes_each_video_once(pinhole, tmp_path):
         twin = outputs[True] / path.relative_to(outputs[False])
         np.testing.assert_array_equal(cv2.imread(str(twin), cv2.IMREAD_UNCHANGED),
                                       cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+
+
+def test_easymocap_newer_hand_keys_and_huge_image_headers(trees, model):
+    """Fits with the newer separate `handl` / `handr` are refused, not read with the hands dropped; an image whose
+    header declares far more pixels than its camera is refused before decoding."""
+    root = trees["easymocap"]
+    path = root / "smplx" / "000002.json"
+    fit = json.loads(path.read_text())
+    path.write_text(json.dumps([dict(fit[0], handl=[[0.0] * 6], handr=[[0.0] * 6])]))
+    with pytest.raises(CaptureError, match="000002.json: holds 'handl' / 'handr'"):
+        EasyMocapCapture(root, body_model=model)
+    image = trees["actorshq"] / "4x" / "rgbs" / "cam01" / "cam01_rgb000001.png"
+    data = bytearray(image.read_bytes())
+    data[16:24] = (100_000).to_bytes(4, "big") * 2  # IHDR width and height
+    image.write_bytes(bytes(data))
+    capture = ActorsHQCapture(trees["actorshq"])
+    with pytest.raises(CaptureError, match="cam01_rgb000001.png"):
+        capture.read_image("cam01", 1)

@@ -42,7 +42,7 @@ def test_each_layout_runs_to_its_table(tmp_path):
     write_actorshq(thuman, data / "actorshq" / "Actor01" / "Sequence1")
     write_avatarrex(thuman, data / "avatarrex" / "zzr", video=True)
     datasets = {
-        "easymocap": {"subjects": ["seq1"], "reader": {"masks": "mask"}},
+        "easymocap": {"subjects": ["seq1"], "reader": {"masks": "mask-schp"}},
         "actorshq": {"subjects": ["actor01"], "subject_paths": {"actor01": "Actor01/Sequence1"},
                      "reader": {"scale": "4x"}},
         "avatarrex": {"subjects": ["zzr"]},

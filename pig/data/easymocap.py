@@ -5,9 +5,10 @@ Cameras as zju3dv/EasyMocap reads them (`easymocap/mytools/camera_utils.py`, `re
 in intri.yml (an entry that reads as no string is a number, lines 49-55), `K_<cam>`, `dist_<cam>` or else `D_<cam>`
 (lines 142-146), optional `H_<cam>`, `W_<cam>` (lines 121-127); in extri.yml the Rodrigues `R_<cam>` (lines
 128-131; `write_camera` also stores the matrix as `Rot_<cam>`, lines 179-181, read here where `R_` is absent) and
-`T_<cam>`, world to camera (`P = K [R | T]`, line 139). Frames `images/<cam>/%06d.jpg`. Masks `<masks>/<cam>/%06d.png`,
-the person any value above 0, as EasyMocap's own loader reads them (`easymocap/neuralbody/dataset/mvbase.py`, lines
-113-138); the folder is a reader option (`mask` by default; `mask-schp` where its SCHP script wrote them). The body
+`T_<cam>`, world to camera (`P = K [R | T]`, line 139). Frames `images/<cam>/%06d.jpg`. Masks
+`<masks>/<cam>/%06d.png` or `%06d_<person>.png`, the person any value above 0, as EasyMocap's own loader reads them
+(`easymocap/neuralbody/dataset/mvbase.py`, lines 113-138), in `mask-schp/` by default, where its configuration for
+custom data looks (`config/neuralbody/dataset/neuralbody_custom.yml`, lines 12 and 31); a reader option. The body
 fit `smplx/%06d.json` is converted to standard SMPL-X by `pig.body.easymocap`. Frames with images but no fit are
 left out (a fit of part of a sequence); a fit without images is an error.
 """
@@ -34,7 +35,7 @@ if TYPE_CHECKING:
     from pig.body.model import BodyModel
 
 INTRI, EXTRI = "intri.yml", "extri.yml"
-LAYOUT = ("intri.yml, extri.yml (OpenCV FileStorage), images/<cam>/%06d.jpg, <masks>/<cam>/%06d.png, "
+LAYOUT = ("intri.yml, extri.yml (OpenCV FileStorage), images/<cam>/%06d.jpg, mask-schp/<cam>/%06d.png, "
           "smplx/%06d.json")
 MAX_YAML_BYTES = 16 * 2**20
 MAX_JSON_BYTES = 16 * 2**20  # a frame's fits: a few kB a person
@@ -170,6 +171,10 @@ def read_fit(path: Path, person: int | None) -> dict[str, np.ndarray]:
         if len(matches) != 1:
             raise CaptureError(f"{path}: {len(matches)} people with id {person}; ids are {ids}")
         entry = matches[0]
+    if "handl" in entry or "handr" in entry:
+        raise CaptureError(f"{path}: holds 'handl' / 'handr', the hand poses of EasyMocap's newer body models, which "
+                           "this reader does not take; export the fits with 'poses' holding the hands (the 87-value "
+                           "SMPL-X form, or the full 165)")
     fit = {}
     for key, size in (("Rh", 3), ("Th", 3), ("poses", None), ("shapes", None), ("expression", None)):
         if key not in entry:
@@ -205,7 +210,7 @@ class EasyMocapCapture(FramesCapture):
     layout = LAYOUT
     nonzero_masks = True
 
-    def __init__(self, root: str | Path, body_model: str | Path | BodyModel | None = None, masks: str = "mask",
+    def __init__(self, root: str | Path, body_model: str | Path | BodyModel | None = None, masks: str = "mask-schp",
                  params: str = "smplx", person: int | None = None, flat_hand_mean: bool = True):
         self.source = Path(root)
         for option, value in (("masks", masks), ("params", params)):
@@ -231,7 +236,8 @@ class EasyMocapCapture(FramesCapture):
         for name, cam in self.cameras.items():
             images[name] = camera_frames(self.source / "images" / name, _FRAME, "%06d.jpg", cam.width, cam.height,
                                          count, f"camera {name}", exact=False)
-            masks_[name] = camera_frames(self.source / masks / name, _FRAME, "%06d.png", cam.width, cam.height,
+            masks_[name] = camera_frames(self.source / masks / name, rf"(\d+)(?:_{person or 0})?",
+                                         f"%06d.png or %06d_{person or 0}.png", cam.width, cam.height,
                                          count, f"camera {name}'s masks", exact=False)
         self._attach(images, masks_, set(), extra_frames=True)
 
