@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+
 from pig.body.params import ParamsError, SmplxParams
 from pig.data.frame_sources import (FramesCapture, FrameFiles, camera_frames, relative_folder, video_in_place_of,
                                      video_size)
@@ -39,7 +40,6 @@ LAYOUT = ("intri.yml, extri.yml (OpenCV FileStorage), images/<cam>/%06d.jpg, mas
           "smplx/%06d.json")
 MAX_YAML_BYTES = 16 * 2**20
 MAX_JSON_BYTES = 16 * 2**20  # a frame's fits: a few kB a person
-MAX_MATRIX = 16  # values of the largest matrix read (K: 9)
 _FRAME = r"(\d+)"
 
 

@@ -1,9 +1,10 @@
 """One camera's frames as a capture stores them: numbered image files in a folder, or one video file in its place.
 
-The readers of the EasyMocap, ActorsHQ and AvatarReX layouts (`pig.data.layouts`) share these. A video
-`X.mp4` (or .mkv, .avi, .mov) stands for the frame folder `X/`; its i-th frame is frame i. Video frames are
-decoded in order, once, as the preprocess stage asks for them camera by camera (a small window of decoded frames
-serves its threads' out-of-order requests); the declared frame size and count are checked before any decoding.
+The readers of the EasyMocap, ActorsHQ and AvatarReX layouts (`pig.data.easymocap`, `pig.data.actorshq`,
+`pig.data.avatarrex`) share these. A video `X.mp4` (or .mkv, .avi, .mov) stands for the frame folder `X/`; its
+i-th frame is frame i. Video frames are decoded in order, once, as the preprocess stage asks for them camera by
+camera (a small window of decoded frames serves its threads' out-of-order requests); the declared frame size and
+count are checked before any decoding.
 Data preparation, no paper equation.
 """
 from __future__ import annotations
@@ -49,8 +50,9 @@ class FrameFiles:
                 self.files[frame] = Path(entry.path)
 
     @property
-    def frames(self) -> set[int]:
-        return set(self.files)
+    def frames(self):
+        """The frame ids, as a view: membership is O(1) (the preprocess stage asks for every view)."""
+        return self.files.keys()
 
     def read(self, frame: int, flags: int, max_pixels: int) -> np.ndarray:
         if frame not in self.files:
@@ -83,8 +85,8 @@ class VideoFrames:
                                f"parameters (frame i of the video is frame i of the parameters); frame counts disagree")
 
     @property
-    def frames(self) -> set[int]:
-        return set(range(self.count))
+    def frames(self) -> range:
+        return range(self.count)
 
     def _open(self) -> cv2.VideoCapture:
         try:
@@ -220,7 +222,7 @@ class FramesCapture:
         wanted = set(self.frames)
         for kind, sources in (("images", images), ("masks", masks)):
             for camera, frames in sources.items():
-                have = frames.frames
+                have = set(frames.frames)
                 absent = sorted(wanted - have - {f for c, f in missing if c == camera})
                 if absent:
                     raise CaptureError(f"{frames.path}: {len(absent)} of the {len(wanted)} frames with body parameters "
