@@ -6,8 +6,8 @@ lines 343-368: the expression joins the shape coefficients before `lbs`, and the
 moved by `Th` afterwards). Standard SMPL-X rotates about the pelvis joint `J0` of the shaped body instead, so the
 same vertices need `global_orient = R(Rh) R(poses[:3])` and `transl = Th + R(Rh) J0 - J0`, `J0` regressed after the
 shape *and* expression blend. EasyMocap's inverse, `convert_from_standard_smpl` (same file, lines 265-295, and
-`easymocap/bodymodel/smpl.py` lines 278-298), regresses `J0` from `shapes` alone, which is off by the expression's
-pelvis shift; its `convert_to_standard_smpl` (`bodymodel/smpl.py` lines 244-276) adds `delta_center`, whose
+`easymocap/bodymodel/smpl.py` lines 278-298), regresses `J0` from its `shapes` argument alone (lines 279-284), so
+the expression counts only where the caller appends it to the shapes; its `convert_to_standard_smpl` (`bodymodel/smpl.py` lines 244-276) adds `delta_center`, whose
 definition is commented out (lines 258-261), so it raises a NameError; with that term gone its translation,
 `Th - (R(Rh) J0 + J0)` (line 265), still has the wrong sign on `R(Rh) J0`. No paper equation: data preparation.
 
