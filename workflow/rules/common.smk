@@ -17,7 +17,7 @@ from snakemake_interface_executor_plugins.settings import ExecMode
 from pig.avatar.config import AvatarConfig
 from pig.avatar.variants import table_variants, variant_overrides
 from pig.config import load_preset, load_section, load_yaml
-from pig.data.formats import capture_format
+from pig.data.formats import capture_format, subject_path
 from pig.data.raw import CaptureError
 from pig.data.synthetic.config import SyntheticConfig
 from pig.gpu_slots import LOCAL_SLOTS_ENV, machine_devices
@@ -37,7 +37,7 @@ ANIMATE_OPTIONS = "--fps 15 --size 384 384"  # the examples: small and quick on 
 PREVIEW_CLIP = "preview"
 PREVIEW_OPTIONS = "--fps 8 --seconds 2.5 --orbit-period 2.5 --size 160 160"
 # The keys of a dataset YAML that pig.stages.preprocess reads (subject lists and root are not among them).
-PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split")
+PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split", "reader")
 
 
 def check_renamed_config_keys():
@@ -186,8 +186,11 @@ def subjects(name, table="main"):
 
 
 def raw_root(dataset, subject):
-    """Where the raw capture of a subject lives (generated for the synthetic dataset)."""
-    return str(Path(dataset_config(dataset)["root"]) / subject)
+    """Where the raw capture of a subject lives (generated for the synthetic dataset): `root/<subject>`, or
+    `root/<path>` where the dataset's `subject_paths` maps the subject to a nested folder (ActorsHQ's
+    Actor01/Sequence1)."""
+    data = dataset_config(dataset)
+    return str(Path(data["root"]) / subject_path(data, subject, config["datasets"][dataset]))
 
 
 def default_targets():
