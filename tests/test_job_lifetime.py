@@ -26,11 +26,13 @@ JOB_ENVIRONMENT = {"PIG_WORKFLOW_JOB": "1"}
 SAFETY_S = 300
 
 
-def _until(condition, what: str):
-    """The first true value of `condition()`; fails naming `what` if none comes within the safety net."""
+def _until(condition, what: str, process: subprocess.Popen | None = None):
+    """The first true value of `condition()`; fails naming `what` if none comes within the safety net, or if
+    `process` ends first."""
     deadline = time.monotonic() + SAFETY_S
     while not (value := condition()):
         assert time.monotonic() < deadline, f"still waiting for {what}"
+        assert process is None or process.poll() is None, f"{what}: the process ended first"
         time.sleep(0.1)
     return value
 
@@ -41,6 +43,15 @@ def _ended(pid: int) -> bool:
         return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
     except psutil.NoSuchProcess:
         return True
+
+
+def _lock_free(output: Path) -> bool:
+    """Whether a rerun may take `output`'s lock now (it takes and releases it)."""
+    try:
+        with output_lock(output, "fit"):  # the rerun's first step: refused while another fit holds it
+            return True
+    except OutputError:
+        return False
 
 
 def _stage_pid(lock: Path) -> int | None:
@@ -64,15 +75,13 @@ def test_killing_a_jobs_shell_ends_its_stage_and_the_rerun_takes_the_lock(small_
     stage = None
     try:
         lock = output.with_name(f".{output.name}.lock")
-        stage = _until(lambda: _stage_pid(lock), "the fit to take its output lock")  # it writes its pid there
+        stage = _until(lambda: _stage_pid(lock), "the fit to take its output lock", shell)  # it writes its pid there
         assert psutil.Process(stage).ppid() == shell.pid  # the launcher ran the stage in its own place
         shell.kill()
         shell.wait()
         _until(lambda: _ended(stage), f"the fit (pid {stage}) to end with its shell")
-        with output_lock(output, "fit"):  # the rerun's first step: refused while another fit holds it
-            pass
-    except OutputError as err:
-        raise AssertionError(f"the rerun was refused: {err}") from None
+        # The kernel releases the lock once the last of the fit's threads is gone, a moment after its main thread.
+        _until(lambda: _lock_free(output), "the rerun to take the fit's output lock")
     finally:
         if stage is not None and not _ended(stage):
             os.kill(stage, signal.SIGKILL)
@@ -101,7 +110,8 @@ def test_a_workflow_job_whose_shell_is_killed_leaves_no_launcher_waiting_for_a_s
         run = subprocess.Popen(argv, stdout=stream, stderr=subprocess.STDOUT, start_new_session=True)
     launcher = None
     try:
-        _until(lambda: log.exists() and "waiting for 1 free GPU slot" in log.read_text(), "the job to wait for a slot")
+        _until(lambda: log.exists() and "waiting for 1 free GPU slot" in log.read_text(), "the job to wait for a slot",
+               run)
         launcher = next(p for p in psutil.Process(run.pid).children(recursive=True)
                         if p.cmdline()[1:3] == ["-m", "pig.gpu_slots"])
         assert launcher.environ().get("PIG_WORKFLOW_JOB") == "1"
@@ -117,3 +127,34 @@ def test_a_workflow_job_whose_shell_is_killed_leaves_no_launcher_waiting_for_a_s
             os.killpg(run.pid, signal.SIGKILL)
         run.wait()
         os.close(held)
+
+
+def test_only_a_workflow_job_ends_with_its_parent(tmp_path):
+    """Outside the workflow (JOB_ENV unset) a process outlives its killed shell, as under `nohup`; in a job it ends."""
+    child = ("from pig.job_lifetime import end_with_parent; import ctypes, os, sys, time; end_with_parent(); "
+             "signal = ctypes.c_int(-1); ctypes.CDLL(None).prctl(2, ctypes.byref(signal), 0, 0, 0); "  # PR_GET_PDEATHSIG
+             "open(sys.argv[1], 'w').write(f'{os.getpid()} {signal.value}'); time.sleep(600)")
+    for marked in (False, True):
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+        env.pop("PIG_WORKFLOW_JOB", None)
+        env.update(JOB_ENVIRONMENT if marked else {})
+        started = tmp_path / f"started-{marked}"
+        shell = subprocess.Popen(["bash", "-c", f"{shlex.quote(sys.executable)} -c {shlex.quote(child)} "
+                                                f"{shlex.quote(str(started))}; true"], env=env, start_new_session=True)
+        pid = None
+        try:
+            pid, death_signal = _until(lambda: started.exists() and started.read_text().split(), "the child to start",
+                                         shell)
+            assert int(death_signal) == (signal.SIGTERM if marked else 0)
+            shell.kill()
+            shell.wait()
+            if marked:
+                _until(lambda: _ended(int(pid)), "the job's child to end with its shell")
+            else:  # orphaned (its parent is another process now), and it runs on
+                _until(lambda: psutil.Process(int(pid)).ppid() != shell.pid, "the child to be orphaned")
+                assert not _ended(int(pid))
+        finally:
+            if pid is not None and not _ended(int(pid)):
+                os.kill(int(pid), signal.SIGKILL)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(shell.pid, signal.SIGKILL)
