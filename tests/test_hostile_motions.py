@@ -191,3 +191,12 @@ def test_rows_read_alone_equal_numpys_slice(tmp_path, monkeypatch, compression, 
         np.testing.assert_array_equal(read[key], arrays[key])
     with pytest.raises(ValueError, match="'frames' at 37 rows of 48 bytes is more than the 100 bytes"):
         npz.read_npz_rows(path, ValueError, "x", ["frames"], ["frames"], 37, range(37), max_bytes=100)
+
+
+def test_a_frame_step_that_slows_the_video_below_the_bound_is_refused(checkpoint, tmp_path, capsys):  # noqa: F811
+    err = _refused(capsys, "animate", _run("animate", checkpoint, tmp_path / "out", str(DEMO_MOTION), "--frames",
+                                           "0:144:500"))  # 30 fps / 500: FFmpeg's VP9 cannot open below ~0.1 fps
+    assert f"{DEMO_MOTION}: with --frames 0:144:500 the video would play at 0.06 fps" in err
+    assert not (tmp_path / "out").exists()
+    assert run_cli(animate_main, _run("animate", checkpoint, tmp_path / "out", str(DEMO_MOTION), "--frames",
+                                      "0:144:500", "--fps", "2")) == 0  # resampled to a playable rate

@@ -203,6 +203,7 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
                              frames=selection)
         motion = capture_motion(motion, model.body_model, driver.refined()[0], (target_up, ground, centre), None,
                                 fps, up)[0]
+        check_fps(motion.fps, f"{motion.source}: with --frames {frames} the video would play at", ValueError)
 
     count = len(motion.full_pose)
     if camera is not None:

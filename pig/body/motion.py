@@ -43,7 +43,7 @@ _KEYS = ("poses", "trans", "mocap_framerate", "mocap_frame_rate", "betas", "glob
 # The members with a row per frame, read only at the frames asked for; `betas` (one shape) and the rate are not.
 _FRAME_KEYS = ("poses", "trans", "global_orient", "body_pose", "jaw_pose", "left_hand_pose", "right_hand_pose",
                "expression", "transl", "fullpose")
-_FRAMES_OF = {"poses": AMASS_LAYOUT, "global_orient": THUMAN4_LAYOUT, "fullpose": DNA_LAYOUT}  # layout by its key
+_LAYOUT_KEYS = ("poses", "global_orient", "fullpose")  # the member that tells each layout, with a row per frame
 # Bounds on what a motion may ask for (docs/animation.md). Each frame is posed and rendered, so MAX_FRAMES, checked
 # after --frames and --fps and before anything is allocated, bounds memory and time: an hour at 30 fps.
 MAX_FRAMES = 108_000
@@ -116,15 +116,15 @@ def check_fps(fps: float, what: str, error: type[Exception] = MotionError) -> fl
     return float(fps)
 
 
-def check_translations(transl: np.ndarray, source: str, first_frame=None) -> None:
+def check_translations(transl: np.ndarray, source: str, frames=None) -> None:
     """MotionError naming `source`, the first bad frame and its value when a translation (N, 3) is not finite or lies
     more than MAX_TRANSLATION_M from the origin (no capture could hold it: placed in one, such a clip either
-    collapses onto a few points or leaves the view). `first_frame` (N,): each row's frame index in `source`."""
+    collapses onto a few points or leaves the view). `frames` (N,): each row's frame index in `source`."""
     distance = np.linalg.norm(np.asarray(transl, dtype=np.float64), axis=1)
     bad = ~(distance <= MAX_TRANSLATION_M)  # NaN compares false
     if bad.any():
         row = int(np.argmax(bad))
-        frame = row if first_frame is None else int(first_frame[row])
+        frame = row if frames is None else int(frames[row])
         raise MotionError(f"{source}: the translation of frame {frame} is {np.asarray(transl)[row].tolist()}, "
                           f"expected finite and within {MAX_TRANSLATION_M:g} m of the clip's origin")
 
@@ -174,8 +174,8 @@ def read_motion(path: str | Path, fps: float | None = None, hands_mean: np.ndarr
     expected = f"one of: {AMASS_LAYOUT}; {THUMAN4_LAYOUT}; {DNA_LAYOUT}"
     if not path.is_file():
         raise MotionError(f"{path}: motion file not found; expected {expected}")
-    shapes = npz_shapes(path, MotionError, expected, _FRAMES_OF)
-    frames_key = next((key for key in _FRAMES_OF if key in shapes), None)
+    shapes = npz_shapes(path, MotionError, expected, _LAYOUT_KEYS)
+    frames_key = next((key for key in _LAYOUT_KEYS if key in shapes), None)
     if frames_key is None:
         with zipfile.ZipFile(path) as archive:  # npz_shapes checked it; list every member, not only the known ones
             keys = sorted(name[:-4] for name in archive.namelist() if name.endswith(".npy"))
