@@ -15,8 +15,6 @@ import math
 import pickle
 import zipfile
 import zlib
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -129,27 +127,27 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
                         f"({err}); they are not loaded because loading them could run code") from None
 
 
-@contextmanager
-def _archive(path: Path, error: type[Exception], expected: str) -> Iterator[tuple[zipfile.ZipFile, dict[str, str]]]:
-    """(the open archive, {key: member name}) of the npz at `path`; `error` as `read_npz`'s for anything the block
-    meets that makes it no readable npz."""
-    try:
-        require_regular_file(path, error, expected)
-        with path.open("rb") as handle:
-            head = handle.read(4)
-            if head not in ZIP_MAGIC:
-                shown = f"starts with {head!r}" if head else "is empty"
-                raise error(f"{path}: not a valid npz archive (the file {shown}); expected {expected}, a zip of .npy "
-                            "arrays as numpy.savez writes")
-            handle.seek(0)
-            with zipfile.ZipFile(handle) as archive:
-                yield archive, {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
-    except FileNotFoundError:
-        raise error(f"{path}: file not found; expected {expected}") from None
-    except (zipfile.BadZipFile, zlib.error, EOFError) as err:
-        raise error(f"{path}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}") from None
-    except OSError as err:
-        raise error(f"{path}: cannot read the file ({err.strerror or err}); expected {expected}") from None
+def _zip_archive(handle, path: Path, error: type[Exception], expected: str) -> zipfile.ZipFile:
+    """The open file `handle` of `path` as a zip archive, after its first bytes showed it is one (`error` otherwise)."""
+    head = handle.read(4)
+    if head not in ZIP_MAGIC:
+        shown = f"starts with {head!r}" if head else "is empty"
+        raise error(f"{path}: not a valid npz archive (the file {shown}); expected {expected}, a zip of .npy arrays as "
+                    "numpy.savez writes")
+    handle.seek(0)
+    return zipfile.ZipFile(handle)
+
+
+def _unreadable(path: Path, err: Exception, error: type[Exception], expected: str) -> Exception:
+    """`error` naming `path` for an exception met while opening or reading an npz archive."""
+    if isinstance(err, FileNotFoundError):
+        return error(f"{path}: file not found; expected {expected}")
+    if isinstance(err, (zipfile.BadZipFile, zlib.error, EOFError)):
+        return error(f"{path}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}")
+    return error(f"{path}: cannot read the file ({getattr(err, 'strerror', None) or err}); expected {expected}")
+
+
+_ARCHIVE_ERRORS = (OSError, zipfile.BadZipFile, zlib.error, EOFError)
 
 
 def _header(member, key: str, path, error: type[Exception]) -> tuple[tuple[int, ...], bool, np.dtype]:
@@ -168,12 +166,17 @@ def npz_shapes(path: str | Path, error: type[Exception], expected: str, keys) ->
     """The declared shapes of the members `keys` (those present) of the npz at `path`, from their .npy headers
     alone; `error` as `read_npz`'s."""
     path = Path(path)
-    with _archive(path, error, expected) as (archive, members):
-        shapes = {}
-        for key in (k for k in keys if k in members):
-            with archive.open(members[key]) as member:
-                shapes[key] = _header(member, key, path, error)[0]
-        return shapes
+    try:
+        require_regular_file(path, error, expected)
+        with path.open("rb") as handle, _zip_archive(handle, path, error, expected) as archive:
+            members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
+            shapes = {}
+            for key in (k for k in keys if k in members):
+                with archive.open(members[key]) as member:
+                    shapes[key] = _header(member, key, path, error)[0]
+            return shapes
+    except _ARCHIVE_ERRORS as err:
+        raise _unreadable(path, err, error, expected) from None
 
 
 def read_npz_rows(path: str | Path, error: type[Exception], expected: str, keys, row_keys, length: int,
@@ -182,9 +185,14 @@ def read_npz_rows(path: str | Path, error: type[Exception], expected: str, keys,
     `rows` alone (a range of positive step within 0..length-1), streamed a block at a time: its selected rows, not
     the whole member, are what `max_bytes` bounds, and rows past the last selected one are never decompressed."""
     path = Path(path)
-    with _archive(path, error, expected) as (archive, members):
-        return {key: _member_or_rows(archive, members[key], key in row_keys, length, rows, path, error, max_bytes)
-                for key in keys if key in members}
+    try:
+        require_regular_file(path, error, expected)
+        with path.open("rb") as handle, _zip_archive(handle, path, error, expected) as archive:
+            members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
+            return {key: _member_or_rows(archive, members[key], key in row_keys, length, rows, path, error, max_bytes)
+                    for key in keys if key in members}
+    except _ARCHIVE_ERRORS as err:
+        raise _unreadable(path, err, error, expected) from None
 
 
 ROW_BLOCK_BYTES = 1 << 24  # rows streamed per read
