@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from pig.job_lifetime import end_with_parent
+
 # Set by the workflow on a local run: only then does the launcher hand out slots.
 LOCAL_SLOTS_ENV = "PIG_GPU_SLOTS"
 # A stand-in device list ("0,1,2"; empty: none) that replaces what the machine has (tests; or a subset of its GPUs).
@@ -103,6 +105,7 @@ def _now() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    end_with_parent()  # a job's shell killed while this waits for a slot: no orphan takes the slot later
     parser = argparse.ArgumentParser(prog="python -m pig.gpu_slots", description=__doc__.split("\n\n")[0])
     parser.add_argument("--gpus", type=int, default=1, help="slots (devices) the command needs (default 1)")
     parser.add_argument("--preset", default="?", help="the compute preset that asks for them (named in messages)")

@@ -21,6 +21,7 @@ from pig.data.formats import capture_format, subject_path
 from pig.data.raw import CaptureError
 from pig.data.synthetic.config import SyntheticConfig
 from pig.gpu_slots import LOCAL_SLOTS_ENV, machine_devices
+from pig.job_lifetime import JOB_ENV
 from pig.metrics.weight_files import FETCH_COMMAND, loss_weight_problems
 from pig.names import safe_name
 from pig.resources import check_rule_names, rule_resources
@@ -87,6 +88,11 @@ def check_preset_resources():
                 f"{preset()['_path']}: section 'resources' gives rule {name} a GPU, which it does not use; "
                 "expected gpu: 0 for it"
             )
+
+
+# A job's stage ends with the job's shell (pig.job_lifetime) rather than run on as an orphan that holds its output lock
+# against the rerun. The jobs inherit this process's environment; an environment variable, so nothing reruns.
+os.environ[JOB_ENV] = "1"
 
 
 # Local GPU slots (pig.gpu_slots). The command of every rule that may use a GPU starts with the slot launcher. On a
