@@ -151,8 +151,6 @@ def resumable_dir(output: Path, stage: str, settings: dict) -> Iterator[Path]:
                 shutil.rmtree(partial)
         if not partial.is_dir():
             fresh = _temporary_dir(output)  # renamed once the record is in: a partial folder always has one
-            shutil.rmtree(fresh, ignore_errors=True)
-            fresh.mkdir()
             write_json(fresh / PARTIAL_RECORD, record)
             os.replace(fresh, partial)
         try:
