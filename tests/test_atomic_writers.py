@@ -113,7 +113,8 @@ def test_remove_orphans_finds_the_random_temporaries_of_dead_writers(tmp_path):
     dead = child.pid
     path = tmp_path / "avatar.pt"
     orphans = [f".avatar.{dead}.0a1b2c3d.tmp.pt", f".avatar.pt.{dead}.0a1b2c3d.tmp", f".avatar.pt.{dead}.ffffffff.old"]
-    kept = [f".avatar.{os.getpid()}.0a1b2c3d.tmp.pt", f".avatar.{dead}.0a1b2c3.tmp.pt", f".avatar.{dead}.XYZ12345.tmp.pt"]
+    kept = [f".avatar.{os.getpid()}.0a1b2c3d.tmp.pt", f".avatar.{dead}.0a1b2c3.tmp.pt",
+            f".avatar.{dead}.XYZ12345.tmp.pt"]
     for name in orphans + kept:
         (tmp_path / name).write_bytes(b"")
     mine = io._temporary(path)  # this process's own, alive: kept
