@@ -1,6 +1,6 @@
-"""pig._io's atomic writers against planted links: a symbolic link at the name a writer's temporary would take,
-pointing at a file or folder outside the destination, is never written through nor renamed into place; the
-temporaries stay findable by `remove_orphans`.
+"""pig._io's atomic writers against planted links: a symbolic link at the name a writer's temporary would take
+(or at a stage's lock file), pointing at a file or folder outside the destination, is never written through nor
+renamed into place; the temporaries stay findable by `remove_orphans`.
 
 The random part of the names is made predictable here (`pig._io._token`), so that links can be planted at the
 names the writer tries first, and at the earlier fixed name `.{stem}.{pid}.tmp{suffix}`.
@@ -92,6 +92,21 @@ def test_a_link_planted_at_a_folder_temporary_name_is_not_built_in(tmp_path, tok
         (tmp / "new.txt").write_text("this run's")
     assert sorted(p.name for p in outside.iterdir()) == ["keep.txt"] and (outside / "keep.txt").read_text() == "theirs"
     assert not path.is_symlink() and sorted(p.name for p in path.iterdir()) == ["new.txt"]
+
+
+def test_a_link_planted_at_an_output_lock_is_not_written_through(tmp_path):
+    """A stage's lock beside its output folder (pig._outputs.output_lock), truncated and written by its holder."""
+    from pig._outputs import OutputError, output_lock
+
+    outside = tmp_path / "precious.bin"
+    outside.write_bytes(b"not to be touched")
+    output = tmp_path / "out" / "fit"
+    output.parent.mkdir()
+    (output.parent / ".fit.lock").symlink_to(outside)
+    with pytest.raises(OutputError):
+        with output_lock(output, "fit"):
+            pass
+    assert outside.read_bytes() == b"not to be touched" and (output.parent / ".fit.lock").is_symlink()
 
 
 def test_a_temporary_swapped_for_a_link_while_written_is_not_renamed_into_place(tmp_path):
