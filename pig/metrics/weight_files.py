@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pig.progress import progress_bar
-from pig._io import create_temporary, file_sha256
+from pig._io import _still_ours, create_temporary, file_sha256
 
 
 @dataclass(frozen=True)
@@ -184,9 +184,10 @@ def fetch(entry: WeightFile, dest_dir: Path, opener: Callable = urllib.request.u
         with os.fdopen(fd, "wb") as out:
             created = os.fstat(out.fileno())
             _download(entry, out, target, opener, timeout, report, clock, min_rate, window_s)
-        now = os.lstat(tmp)
-        if (now.st_dev, now.st_ino) != (created.st_dev, created.st_ino):
-            raise FetchError(f"{tmp}: the download's temporary was replaced while it was written; nothing was kept")
+        try:
+            _still_ours(tmp, created)
+        except OSError as err:
+            raise FetchError(f"{entry.filename}: {err}") from None
         _place(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
