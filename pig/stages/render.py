@@ -28,7 +28,7 @@ from pig.config import load_preset, load_section, resolve_device
 from pig.data.capture_record import RECORD, capture_record
 from pig.data.exr import write_exr
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
-from pig.data.render_store import ChunkEncoder, chunk_path, write_manifest
+from pig.data.render_store import FORMAT, ChunkEncoder, chunk_path, write_manifest
 from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
@@ -174,8 +174,8 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     chunks = [frames[i:i + cfg.chunk_frames] for i in range(0, len(frames), cfg.chunk_frames)]
     # Everything the chunks depend on: a rerun with any of it changed starts afresh.
     settings = {"checkpoint_sha256": checkpoint_sha256, "capture": capture.fingerprint(), "split": split,
-                "codec": cfg.render_codec, "chunk_frames": cfg.chunk_frames, "every_view": every_view,
-                "rasterizer": asdict(rasterizer), "device": str(device)}
+                "chunk_format": FORMAT, "codec": cfg.render_codec, "chunk_frames": cfg.chunk_frames,
+                "every_view": every_view, "rasterizer": asdict(rasterizer), "device": str(device)}
     with resumable_dir(output, "render", settings) as work, \
             progress_bar(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
         write_json(work / RECORD, capture_record(capture))  # the capture these renders are for (evaluate checks it)
@@ -205,7 +205,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
                         SplatTrack(np.asarray(chunk), np.stack(tracks[lod][0]), np.stack(tracks[lod][1])).save(
                             _track_piece(work / f"lod{lod}", chunk[0]))
                     for cam in cameras:
-                        encoder.finish_chunk(chunk_path(work / f"lod{lod}", cam, chunk[0]))
+                        encoder.finish_chunk(chunk_path(work / f"lod{lod}", cam, chunk[0]), cam, lod)
         finally:
             encoder.close()
         for lod in levels:
