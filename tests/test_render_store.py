@@ -337,3 +337,20 @@ def test_evaluate_refuses_a_view_of_another_size_naming_its_chunk(tmp_path, rng)
                                                      "is 41x32 (WxH), camera cam00 is 40x32")):
         evaluate_level(capture, "novel_view", split / "lod0", EvaluateConfig(batch_size=3, encode_workers=1), None,
                        None, torch.device("cpu"))
+
+
+def test_chunks_of_format_one_without_camera_and_lod_are_still_read(tmp_path, rng):
+    """Renders written before chunks named their camera and LOD read as before; every other check applies."""
+    images = _textured(np.random.default_rng(0), 2, HEIGHT, WIDTH)
+    path = _crafted(tmp_path, np.random.default_rng(0))
+    with np.load(path) as chunk:
+        np.savez(path, **{key: chunk[key] for key in ("frames", "offsets", "data", "codec")})
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    (tmp_path / "manifest.json").write_text(json.dumps({**manifest, "format": "pig-render-chunks/1"}))
+    reader = RenderReader(tmp_path / "lod0", {"cam00": (WIDTH, HEIGHT)})
+    for frame in (0, 1):
+        np.testing.assert_array_equal(reader.image_u8("cam00", frame), images[frame])
+    manifest["format"] = "pig-render-chunks/2"  # the same chunk under a manifest of format 2: its ids are required
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(CaptureError, match=re.escape(f"{path}: missing ['camera', 'lod']")):
+        RenderReader(tmp_path / "lod0").image_u8("cam00", 0)
