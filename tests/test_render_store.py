@@ -354,3 +354,17 @@ def test_chunks_of_format_one_without_camera_and_lod_are_still_read(tmp_path, rn
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(CaptureError, match=re.escape(f"{path}: missing ['camera', 'lod']")):
         RenderReader(tmp_path / "lod0").image_u8("cam00", 0)
+
+
+def test_a_view_the_manifest_does_not_list_is_reported_against_the_manifest(tmp_path, rng):
+    """It was reported as a missing per-view PNG that nothing had ever written."""
+    _crafted(tmp_path, rng)
+    reader = RenderReader(tmp_path / "lod0")
+    for camera, frame in (("cam00", 5), ("cam02", 0)):
+        assert not reader.has(camera, frame)
+        with pytest.raises(CaptureError, match=re.escape(f"{tmp_path / 'manifest.json'}: lists no view of camera "
+                                                         f"{camera!r} at frame {frame}")):
+            reader.image(camera, frame)
+    chunk_path(tmp_path / "lod0", "cam01", 0).parent.mkdir()  # listed, but its chunk is not there
+    with pytest.raises(CaptureError, match=re.escape(f"{chunk_path(tmp_path / 'lod0', 'cam01', 0)}: missing")):
+        reader.image("cam01", 1)

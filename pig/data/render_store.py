@@ -274,10 +274,14 @@ class RenderReader:
 
     def _png_u8(self, camera: str, frame: int, chunk: Path | None) -> np.ndarray:
         """A per-view PNG; a missing one is an error naming the chunk the manifest expects, if any."""
-        png = self._png(camera, frame)
+        png, manifest = self._png(camera, frame), self.level_dir.parent / MANIFEST
         if chunk is not None and not png.is_file():
-            raise CaptureError(f"{chunk}: missing; the manifest {self.level_dir.parent / MANIFEST} lists frame "
-                               f"{frame} of camera {camera!r} in it; {RERENDER}")
+            raise CaptureError(f"{chunk}: missing; the manifest {manifest} lists frame {frame} of camera {camera!r} "
+                               f"in it; {RERENDER}")
+        if self.manifest is not None and not png.is_file():
+            raise CaptureError(f"{manifest}: lists no view of camera {camera!r} at frame {frame} (cameras "
+                               f"{self.manifest['cameras']}, {len(self._runs)} frames); were the renders made for "
+                               "another split or capture?")
         if self.manifest is None and not png.is_file() and any((self.level_dir / camera).glob("[0-9]*.npz")):
             raise CaptureError(f"{self.level_dir.parent / MANIFEST}: missing, so the render chunks under "
                                f"{self.level_dir} cannot be read; {RERENDER}")
