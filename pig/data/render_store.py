@@ -170,8 +170,8 @@ class RenderReader:
         if self.manifest is not None:
             frames, size = self.manifest["frames"], self.manifest["chunk_frames"]
             for start in range(0, len(frames), size):
-                for frame in frames[start:start + size]:
-                    self._runs[frame] = frames[start:start + size]
+                run = frames[start:start + size]
+                self._runs.update(dict.fromkeys(run, run))
             self._cameras = set(self.manifest["cameras"])
         self._open: dict[str, tuple[Path, dict[int, int], np.ndarray, np.ndarray]] = {}
 
