@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import html
 import math
+import re
 from dataclasses import dataclass
 from decimal import ROUND_HALF_UP, Decimal, localcontext
 from pathlib import Path
@@ -141,10 +142,12 @@ def _superscript(marks: list[int]) -> str:
 
 
 def _markdown_text(text: str) -> str:
-    """`text` shown as is in Markdown: HTML tags as text, a `|` not ending a table cell (backslashes escaped
-    first, so that one before it cannot undo its escape), a line break as a space."""
-    text = html.escape(str(text).replace("\\", "\\\\"), quote=False)
-    return " ".join(text.replace("|", "\\|").splitlines())
+    """`text` shown as is in Markdown: a `<` that would open an HTML tag and an `&` that would start an entity as
+    entities (a plain `< 2000` stays readable), a `|` not ending a table cell (backslashes escaped first, so that one
+    before it cannot undo its escape), a line break as a space."""
+    text = str(text).replace("\\", "\\\\").replace("|", "\\|")
+    text = re.sub(r"&(?=#?\w+;)", "&amp;", text)
+    return " ".join(re.sub(r"<(?=[A-Za-z/!?])", "&lt;", text).splitlines())
 
 
 def to_markdown(table: pd.DataFrame, title: str) -> str:
