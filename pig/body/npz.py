@@ -15,6 +15,7 @@ import math
 import pickle
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,16 +43,18 @@ class _ArraysOnlyUnpickler(pickle.Unpickler):
 
 
 def read_npz(path: str | Path, error: type[Exception], expected: str, keys=None,
-             pickled: tuple[str, ...] = (), max_bytes: int = MAX_MEMBER_BYTES) -> dict[str, np.ndarray]:
-    """Arrays of the npz at `path` (only `keys` if given, those present); `error(message naming the file)` on
-    anything that is not a readable npz archive. Keys in `pickled` may hold numpy arrays or scipy sparse
-    matrices stored as pickled objects; other object members are an error. A member larger than `max_bytes`
-    decompressed is refused before it is read."""
+             pickled: tuple[str, ...] = (), max_bytes: int = MAX_MEMBER_BYTES,
+             declared: Callable[[str, tuple, np.dtype], str | None] | None = None) -> dict[str, np.ndarray]:
+    """Arrays of the npz at `path` (only `keys` if given, those present, read in that order); `error(message naming
+    the file)` on anything that is not a readable npz archive. Keys in `pickled` may hold numpy arrays or scipy
+    sparse matrices stored as pickled objects; other object members are an error. A member larger than `max_bytes`
+    decompressed is refused before it is read, and so is one for which `declared(key, shape, dtype)` (its .npy
+    header's) returns what was expected instead."""
     path = Path(path)
     try:
         require_regular_file(path, error, expected)
         with path.open("rb") as handle:
-            return _read_archive(handle, path, error, expected, keys, pickled, max_bytes)
+            return _read_archive(handle, path, error, expected, keys, pickled, max_bytes, declared)
     except FileNotFoundError:
         raise error(f"{path}: file not found; expected {expected}") from None
     except OSError as err:
@@ -64,7 +67,7 @@ def read_npz_bytes(data: bytes, source: str, error: type[Exception], expected: s
     return _read_archive(io.BytesIO(data), source, error, expected, keys, (), max_bytes)
 
 
-def _read_archive(handle, source, error, expected, keys, pickled, max_bytes) -> dict[str, np.ndarray]:
+def _read_archive(handle, source, error, expected, keys, pickled, max_bytes, declared=None) -> dict[str, np.ndarray]:
     try:
         head = handle.read(4)
         if head not in ZIP_MAGIC:
@@ -75,7 +78,8 @@ def _read_archive(handle, source, error, expected, keys, pickled, max_bytes) -> 
         with zipfile.ZipFile(handle) as archive:
             members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
             wanted = members if keys is None else [k for k in keys if k in members]
-            return {key: _member(archive, members[key], key in pickled, source, error, max_bytes) for key in wanted}
+            return {key: _member(archive, members[key], key in pickled, source, error, max_bytes, declared)
+                    for key in wanted}
     except (OSError, zipfile.BadZipFile, zlib.error, EOFError) as err:
         raise error(f"{source}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}") from None
 
@@ -94,7 +98,7 @@ def _check_declared(info: zipfile.ZipInfo, header_bytes: int, shape, dtype: np.d
 
 
 def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: type[Exception],
-            max_bytes: int) -> np.ndarray:
+            max_bytes: int, declared=None) -> np.ndarray:
     key = name[:-4]
     info = archive.getinfo(name)
     if info.file_size > max_bytes:
@@ -108,6 +112,9 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
             shape, _, dtype = _HEADER_READERS[version](member)
         except ValueError as err:
             raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
+        wanted = declared(key, shape, dtype) if declared is not None else None
+        if wanted is not None:
+            raise error(f"{path}: member '{key}' declares shape {shape} of {dtype}, expected {wanted}; not read")
         if not dtype.hasobject:
             _check_declared(info, member.tell(), shape, dtype, path, error, max_bytes)
             with archive.open(name) as again:  # read_array reads the header itself
@@ -125,3 +132,110 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
         except Exception as err:  # any failure of the restricted unpickler means the member is not plain data
             raise error(f"{path}: '{key}' holds pickled objects other than numpy arrays or scipy sparse matrices "
                         f"({err}); they are not loaded because loading them could run code") from None
+
+
+def _zip_archive(handle, path: Path, error: type[Exception], expected: str) -> zipfile.ZipFile:
+    """The open file `handle` of `path` as a zip archive, after its first bytes showed it is one (`error` otherwise)."""
+    head = handle.read(4)
+    if head not in ZIP_MAGIC:
+        shown = f"starts with {head!r}" if head else "is empty"
+        raise error(f"{path}: not a valid npz archive (the file {shown}); expected {expected}, a zip of .npy arrays as "
+                    "numpy.savez writes")
+    handle.seek(0)
+    return zipfile.ZipFile(handle)
+
+
+def _unreadable(path: Path, err: Exception, error: type[Exception], expected: str) -> Exception:
+    """`error` naming `path` for an exception met while opening or reading an npz archive."""
+    if isinstance(err, FileNotFoundError):
+        return error(f"{path}: file not found; expected {expected}")
+    if isinstance(err, (zipfile.BadZipFile, zlib.error, EOFError)):
+        return error(f"{path}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}")
+    return error(f"{path}: cannot read the file ({getattr(err, 'strerror', None) or err}); expected {expected}")
+
+
+_ARCHIVE_ERRORS = (OSError, zipfile.BadZipFile, zlib.error, EOFError)
+
+
+def _header(member, key: str, path, error: type[Exception]) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """(shape, Fortran order, dtype) from the .npy header at the start of `member`, which it reads past."""
+    try:
+        version = np.lib.format.read_magic(member)
+        if version not in _HEADER_READERS:
+            raise ValueError(f"unsupported .npy format version {version}")
+        shape, fortran, dtype = _HEADER_READERS[version](member)
+    except ValueError as err:
+        raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
+    return tuple(shape), fortran, dtype
+
+
+def npz_shapes(path: str | Path, error: type[Exception], expected: str, keys) -> dict[str, tuple[int, ...]]:
+    """The declared shapes of the members `keys` (those present) of the npz at `path`, from their .npy headers
+    alone; `error` as `read_npz`'s."""
+    path = Path(path)
+    try:
+        require_regular_file(path, error, expected)
+        with path.open("rb") as handle, _zip_archive(handle, path, error, expected) as archive:
+            members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
+            shapes = {}
+            for key in (k for k in keys if k in members):
+                with archive.open(members[key]) as member:
+                    shapes[key] = _header(member, key, path, error)[0]
+            return shapes
+    except _ARCHIVE_ERRORS as err:
+        raise _unreadable(path, err, error, expected) from None
+
+
+def read_npz_rows(path: str | Path, error: type[Exception], expected: str, keys, row_keys, length: int,
+                  rows: range, max_bytes: int = MAX_MEMBER_BYTES) -> dict[str, np.ndarray]:
+    """As `read_npz` (plain arrays only), but a member of `row_keys` whose first dimension is `length` is read at
+    `rows` alone (a range of positive step within 0..length-1), streamed a block at a time: its selected rows, not
+    the whole member, are what `max_bytes` bounds, and rows past the last selected one are never decompressed."""
+    path = Path(path)
+    try:
+        require_regular_file(path, error, expected)
+        with path.open("rb") as handle, _zip_archive(handle, path, error, expected) as archive:
+            members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
+            return {key: _member_or_rows(archive, members[key], key in row_keys, length, rows, path, error, max_bytes)
+                    for key in keys if key in members}
+    except _ARCHIVE_ERRORS as err:
+        raise _unreadable(path, err, error, expected) from None
+
+
+ROW_BLOCK_BYTES = 1 << 24  # rows streamed per read
+
+
+def _member_or_rows(archive: zipfile.ZipFile, name: str, by_rows: bool, length: int, rows: range, path,
+                    error: type[Exception], max_bytes: int) -> np.ndarray:
+    key = name[:-4]
+    with archive.open(name) as member:
+        shape, fortran, dtype = _header(member, key, path, error)
+        if dtype.hasobject:
+            raise error(f"{path}: '{key}' holds pickled Python objects, which are not loaded (loading them could "
+                        "run code); expected a numeric array")
+        if not (by_rows and len(shape) >= 1 and shape[0] == length):
+            return _member(archive, name, False, path, error, max_bytes)
+        if fortran and len(shape) > 1:  # a row's values lie apart in the file: the whole member, bounded, then rows
+            return np.ascontiguousarray(_member(archive, name, False, path, error, max_bytes)[rows.start:rows.stop:rows.step])
+        header_bytes = member.tell()
+        _check_declared(archive.getinfo(name), header_bytes, shape, dtype, path, error, math.inf)  # sizes agree
+        tail = shape[1:]
+        row_bytes = math.prod(tail) * dtype.itemsize
+        if len(rows) * row_bytes > max_bytes:
+            raise error(f"{path}: member '{key}' at {len(rows):,} rows of {row_bytes:,} bytes is more than the "
+                        f"{max_bytes:,} bytes read from one member; not read")
+        out = np.empty((len(rows), *tail), dtype=dtype)
+        if not rows or row_bytes == 0:
+            return out
+        block = max(1, ROW_BLOCK_BYTES // row_bytes)
+        member.seek(header_bytes + rows.start * row_bytes)
+        filled, index = 0, rows.start
+        while index <= rows[-1]:
+            count = min(block, rows[-1] + 1 - index)
+            data = member.read(count * row_bytes)
+            if len(data) != count * row_bytes:
+                raise error(f"{path}: member '{key}' ends before row {index + len(data) // row_bytes}; truncated")
+            picked = np.frombuffer(data, dtype=dtype).reshape(count, *tail)[(rows.start - index) % rows.step::rows.step]
+            out[filled:filled + len(picked)] = picked
+            filled, index = filled + len(picked), index + count
+        return out

@@ -219,7 +219,8 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
     device = torch.device(device)
     rules = protocol(cfg.protocol)
     batches = view_batches(capture, split, cfg.batch_size)
-    loader = BatchLoader(capture, {level: RenderReader(path) for level, path in level_dirs.items()}, batches,
+    sizes = {name: (camera.width, camera.height) for name, camera in capture.cameras.items()}  # chunks checked against
+    loader = BatchLoader(capture, {level: RenderReader(path, sizes) for level, path in level_dirs.items()}, batches,
                          cfg.encode_workers, pin=device.type == "cuda")
     values: dict[int, list[dict[str, torch.Tensor]]] = {level: [] for level in level_dirs}
     fake_features = {level: FeatureStatistics() for level in level_dirs}

@@ -13,7 +13,7 @@ import torch
 
 from pig.data.capture import Capture
 from pig.data.images import read_png
-from pig.data.render_store import ChunkEncoder, chunk_path
+from pig.data.render_store import ChunkEncoder, chunk_path, write_manifest
 from pig.metrics.fid import InceptionFeatures
 from pig.metrics.lpips import LPIPS
 from pig.stages.evaluate import EvaluateConfig, evaluate_levels
@@ -37,8 +37,10 @@ def test_evaluate_on_the_gpu_matches_the_float32_cpu_run(tmp_path, rng):
             path = chunk_path(tmp_path / "chunked" / f"lod{level}", "cam00", frame // 8 * 8)
             encoder.add(path, frame, np.round(image * 255).astype(np.uint8))
             if frame % 8 == 7 or frame == frames - 1:
-                encoder.finish_chunk(path)
+                encoder.finish_chunk(path, "cam00", level)
     encoder.close()
+    write_manifest(tmp_path / "chunked", {"split": "novel_view", "cameras": ["cam00"], "frames": list(range(frames)),
+                                          "levels": [0, 1], "chunk_frames": 8, "codec": "png", "every_view": False})
     torch.manual_seed(0)
     torch.jit.script(_TinyInception()).save(str(tmp_path / "inception.pt"))
     levels = {level: tmp_path / "chunked" / f"lod{level}" for level in (0, 1)}

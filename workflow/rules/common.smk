@@ -6,6 +6,7 @@
 import hashlib
 import json
 import os
+import re
 import shlex
 from functools import cache
 from importlib.resources import files
@@ -17,12 +18,13 @@ from snakemake_interface_executor_plugins.settings import ExecMode
 from pig.avatar.config import AvatarConfig
 from pig.avatar.variants import table_variants, variant_overrides
 from pig.config import load_preset, load_section, load_yaml
-from pig.data.formats import capture_format
+from pig.data.formats import capture_format, subject_path
 from pig.data.raw import CaptureError
 from pig.data.synthetic.config import SyntheticConfig
 from pig.gpu_slots import LOCAL_SLOTS_ENV, machine_devices
+from pig.job_lifetime import JOB_ENV
 from pig.metrics.weight_files import FETCH_COMMAND, loss_weight_problems
-from pig.names import safe_name
+from pig.names import safe_name, snakemake_syntax
 from pig.resources import check_rule_names, rule_resources
 
 SPLITS = ["novel_view", "novel_pose"]
@@ -37,7 +39,7 @@ ANIMATE_OPTIONS = "--fps 15 --size 384 384"  # the examples: small and quick on 
 PREVIEW_CLIP = "preview"
 PREVIEW_OPTIONS = "--fps 8 --seconds 2.5 --orbit-period 2.5 --size 160 160"
 # The keys of a dataset YAML that pig.stages.preprocess reads (subject lists and root are not among them).
-PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split")
+PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split", "reader")
 
 
 def check_renamed_config_keys():
@@ -47,6 +49,14 @@ def check_renamed_config_keys():
             f"config key `profile` is now `preset` (compute presets are config/presets/*.yaml, apart from "
             f"Snakemake's profiles): use --config preset={config['profile']} or `preset:` in your config file"
         )
+
+
+def check_config_paths():
+    """Refuses a preset path holding Snakemake's path syntax: the rules' commands name it, and Snakemake would read
+    `{x}` in it as a wildcard (WildcardError naming neither the preset nor the key)."""
+    problem = snakemake_syntax(str(config["preset"]))
+    if problem:
+        raise WorkflowError(f"config `preset` {config['preset']!r} {problem}; rename the preset file or its folder")
 
 
 @cache
@@ -87,6 +97,11 @@ def check_preset_resources():
                 f"{preset()['_path']}: section 'resources' gives rule {name} a GPU, which it does not use; "
                 "expected gpu: 0 for it"
             )
+
+
+# A job's stage ends with the job's shell (pig.job_lifetime) rather than run on as an orphan that holds its output lock
+# against the rerun. The jobs inherit this process's environment; an environment variable, so nothing reruns.
+os.environ[JOB_ENV] = "1"
 
 
 # Local GPU slots (pig.gpu_slots). The command of every rule that may use a GPU starts with the slot launcher. On a
@@ -167,7 +182,15 @@ def dataset_config(name):
     if name not in config["datasets"]:
         raise ValueError(f"unknown dataset {name!r}: configured datasets are {sorted(config['datasets'])}")
     safe_name(name, "dataset name", "config `datasets`")  # it names results/{dataset}/ and the tables
-    return load_yaml(config["datasets"][name])  # the stages' reader: ids such as 0102 stay strings
+    dataset = load_yaml(config["datasets"][name])  # the stages' reader: ids such as 0102 stay strings
+    # Rule inputs and outputs: Snakemake would expand <logs> in them to logs, another folder, or fail on {x}.
+    for key in ("root", "body_model"):
+        problem = isinstance(dataset.get(key), str) and snakemake_syntax(dataset[key])
+        if problem:
+            raise WorkflowError(
+                f"{config['datasets'][name]}: `{key}` {dataset[key]!r} {problem}; rename that folder or file"
+            )
+    return dataset
 
 
 def subjects(name, table="main"):
@@ -186,8 +209,11 @@ def subjects(name, table="main"):
 
 
 def raw_root(dataset, subject):
-    """Where the raw capture of a subject lives (generated for the synthetic dataset)."""
-    return str(Path(dataset_config(dataset)["root"]) / subject)
+    """Where the raw capture of a subject lives (generated for the synthetic dataset): `root/<subject>`, or
+    `root/<path>` where the dataset's `subject_paths` maps the subject to a nested folder (ActorsHQ's
+    Actor01/Sequence1)."""
+    data = dataset_config(dataset)
+    return str(Path(data["root"]) / subject_path(data, subject, config["datasets"][dataset]))
 
 
 def default_targets():
