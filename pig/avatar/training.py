@@ -35,6 +35,7 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
+from pig.avatar.distributed import Parallel, ShardedSampler, SilentProgress, shard_loss
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_writer
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
@@ -181,26 +182,50 @@ class LossTerms:
     def band_radius(self, height: int) -> int:
         return band_radius(height, self.cfg.band_radius_px, self.cfg.band_reference_height)
 
+    def draw(self, views: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The LPIPS term's random choices for a loss evaluation of `views` views: the views it sees (sorted; None:
+        all, `lpips_views`) and their windows (n, 2) uniforms (None: no windows, `lpips_patches_from`)."""
+        pick = None
+        if 0 < self.cfg.lpips_views < views:
+            pick = np.sort(self._windows.choice(views, self.cfg.lpips_views, replace=False))
+        windows = self.cfg.lpips_form == "mmlphuman" and self.progress >= self.cfg.lpips_patches_from
+        return pick, self._windows.random((views if pick is None else len(pick), 2)) if windows else None
+
+    @property
+    def lpips_active(self) -> bool:
+        """Whether the LPIPS term is computed at this iteration."""
+        return self.lpips is not None and self.cfg.weight_lpips > 0 and self.progress >= self.cfg.lpips_start
+
     def __call__(self, render: torch.Tensor, images: torch.Tensor, masks: torch.Tensor, height: int,
-                 band: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """`band`: the views' silhouette band where the loader computed it (`host_band`), else from `masks`."""
+                 band: torch.Tensor | None = None, share=None) -> dict[str, torch.Tensor]:
+        """`band`: the views' silhouette band where the loader computed it (`host_band`), else from `masks`.
+        `share` (pig.avatar.distributed.LossShare): these views are a part of the iteration's in a data-parallel
+        fit; every term is then their part of the iteration's mean, with the LPIPS term's views and windows those
+        of the whole iteration's draw."""
         if band is None:
             band = boundary_band(masks, self.band_radius(height))
         terms = dict(self._l1_ssim(render, images, band))
+        if share is not None:
+            terms = {key: value * share.weight for key, value in terms.items()}
         if self.lpips is not None and self.cfg.weight_lpips > 0:
-            if self.progress < self.cfg.lpips_start:  # MMLPHuman's late start: logged as 0, nothing computed
+            if not self.lpips_active:  # MMLPHuman's late start: logged as 0, nothing computed
                 terms["lpips"] = torch.zeros((), device=render.device)
                 return terms
-            if 0 < self.cfg.lpips_views < render.shape[0]:
-                pick = _to_device(np.sort(self._windows.choice(render.shape[0], self.cfg.lpips_views, replace=False)),
-                                  render.device)
+            if share is None:
+                rows, offsets = self.draw(render.shape[0])
+                count = None
+            else:
+                rows, offsets, count = share.lpips_rows, share.lpips_offsets, share.lpips_count
+                if rows is not None and len(rows) == 0:  # none of the iteration's LPIPS views is among these
+                    terms["lpips"] = torch.zeros((), device=render.device)
+                    return terms
+            if rows is not None and len(rows) < render.shape[0]:
+                pick = _to_device(rows, render.device)
                 render, images, masks, band = (t[pick] for t in (render, images, masks, band))
             x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
-            offsets = None
-            if self.cfg.lpips_form == "mmlphuman" and self.progress >= self.cfg.lpips_patches_from:
-                offsets = _to_device(self._windows.random((x.shape[0], 2)), x.device)
+            offsets = None if offsets is None else _to_device(offsets, x.device)
             terms["lpips"] = lpips_views(self.lpips, x, y, masks, self.background, self.cfg.lpips_form, self.cfg.lpips_crop,
-                                         offsets, self.cfg.lpips_crop_sliced)
+                                         offsets, self.cfg.lpips_crop_sliced, count)
             terms["total"] = terms["total"] + self.cfg.weight_lpips * terms["lpips"]
         return terms
 
@@ -285,9 +310,18 @@ def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
         torch.use_deterministic_algorithms(True, warn_only=True)
 
 
+def fit_rank(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, parallel: Parallel,
+             on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager] | None,
+             progress_s: float, tensorboard: bool) -> Path:
+    """One process of a data-parallel fit (pig.avatar.distributed.fit_parallel, which claimed `output_dir`)."""
+    return _fit(capture_dir, output_dir, preset_name, variant, parallel.device, on_iteration,
+                phase or (lambda name: nullcontext()), False, None, progress_s, tensorboard, parallel)
+
+
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
          on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
-         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool) -> Path:
+         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool,
+         parallel: Parallel | None = None) -> Path:
     preset = load_preset(preset_name)
     overrides = variant_overrides(preset, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -303,7 +337,10 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
     use_deterministic_kernels(device, fit_cfg.deterministic)
-    claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
+    lead = parallel is None or parallel.lead  # evaluates, logs and writes
+    clock = time.perf_counter if parallel is None else parallel.clock  # rank 0's decides in a data-parallel fit
+    if parallel is None:
+        claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"
     log_path = output_dir / "train_log.csv"
@@ -353,9 +390,12 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     if state_path.exists():
         start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings, loss_terms,
                                                        average)
-        print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
+        if lead:
+            print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
         if grid_delay and start > grid_delay:
             model.grid.set_lambdas(grid_lambdas, keep_values=False)
+    if parallel is not None:
+        parallel.check_replicas(model, f"at iteration {start}")
 
     background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
     loss = LossTerms(fit_cfg, background, lpips, fit_cfg.compile)
@@ -371,11 +411,15 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                     loss.band_radius if fit_cfg.host_band else None) as source, \
             _matmul_precision(fit_cfg.precision), \
             closing(FitProgress(str(output_dir), fit_cfg.iterations, start, progress_s,
-                                tensorboard_writer(output_dir / TENSORBOARD_DIR) if tensorboard else None)) as report:
+                                tensorboard_writer(output_dir / TENSORBOARD_DIR) if tensorboard else None)
+                    if lead else SilentProgress()) as report:
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
+        if parallel is not None:  # each rank stages only its part of an iteration's views
+            sampler = ShardedSampler(sampler, parallel.rank, parallel.world)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
-        probe = Probe(capture, model, source, fit_cfg.probe_views, fit_cfg.probe_scale) if fit_cfg.probe_every else None
+        probe = (Probe(capture, model, source, fit_cfg.probe_views, fit_cfg.probe_scale)
+                 if fit_cfg.probe_every and lead else None)
 
         last_draw = -math.inf
 
@@ -401,11 +445,13 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "train_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
                      "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""), "data_wait_ms": ""}]
-            evaluate_held_out(rows[0], *evaluations_due(fit_cfg, 0), rows)
+            if lead:
+                evaluate_held_out(rows[0], *evaluations_due(fit_cfg, 0), rows)
             report.record(rows[0])
             report.print_line(0, 0.0)
 
-        started = time.perf_counter()
+        reducer = None if parallel is None else parallel.reduce_gradients(model)
+        started = clock()
         evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
         last_save = started
         waits = []
@@ -417,7 +463,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             waits for the device: once per logged row."""
             nonlocal window, window_waits
             count = max(len(window_waits), 1)
-            now = time.perf_counter()
+            if parallel is not None:
+                window = parallel.sum_terms(window)
+            now = clock()
             row = {"iteration": iteration, "wall_s": round(wall_before + now - started, 3),
                    "train_s": round(wall_before + now - started - evaluating, 3), "lod": lod,
                    "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""),
@@ -429,7 +477,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
 
         def fraction_done(i: int) -> tuple[float, float]:
             """(training seconds so far, the run's fraction done before iteration i: iterations or time budget)."""
-            trained = wall_before + time.perf_counter() - started - evaluating
+            trained = wall_before + clock() - started - evaluating
             if fit_cfg.time_budget_s is None:
                 return trained, i / fit_cfg.iterations
             return trained, max(i / fit_cfg.iterations, trained / fit_cfg.time_budget_s)
@@ -437,7 +485,10 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         iteration = start
         for i in range(start, fit_cfg.iterations):
             trained, done = fraction_done(i)
-            if fit_cfg.time_budget_s is not None and trained >= fit_cfg.time_budget_s:
+            stop = fit_cfg.time_budget_s is not None and trained >= fit_cfg.time_budget_s
+            if parallel is not None:
+                stop, done = parallel.decide(stop, done, sampler.picks(i).share.digest, i)
+            if stop:
                 break
             if grid_delay and i == grid_delay:
                 start_grid_smoothing()
@@ -450,11 +501,17 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 batch = batches.get(i)
             waits.append(batch.wait_s)
             window_waits.append(batch.wait_s)
-            terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
+            if parallel is None:
+                terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
+            else:
+                terms = shard_loss(model, batch, loss, raster, background, phase, parallel)
             with phase("backward"):
                 for opt in optimizers:
                     opt.zero_grad(set_to_none=True)
                 terms["total"].backward()
+            if reducer is not None:
+                with phase("reduce"):
+                    reducer.finish()
             with phase("step"):
                 for opt in optimizers:
                     opt.step()
@@ -466,38 +523,48 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             iteration = i + 1
             full, probing = evaluations_due(fit_cfg, iteration)
             evaluate = full or probing
-            save = iteration < fit_cfg.iterations and time.perf_counter() - last_save > 60 * fit_cfg.checkpoint_minutes
+            save = iteration < fit_cfg.iterations and clock() - last_save > 60 * fit_cfg.checkpoint_minutes
+            if parallel is not None:
+                save = bool(parallel.shared(save)[0])
             if evaluate or save or iteration % fit_cfg.log_every == 0:
                 row = window_row(iteration, batch.lod)
                 if not math.isfinite(row["loss"]):  # read back anyway: a diverged fit stops here, not at the end
                     raise _diverged(f"the training loss is {row['loss']}", iteration, state_path)
-                if evaluate:
+                if evaluate and lead:
                     evaluating += evaluate_held_out(row, full, probing, rows + [row])
                 rows.append(row)
                 report.record(row)
             report.step(iteration, min(fraction_done(iteration)[1], 1.0), evaluate)
             if save:
-                checkpoint(state_path, iteration, wall_before + time.perf_counter() - started)
-                last_save = time.perf_counter()
+                if parallel is not None:
+                    parallel.check_replicas(model, f"at iteration {iteration}")
+                if lead:
+                    checkpoint(state_path, iteration, wall_before + clock() - started)
+                last_save = clock()
             if on_iteration is not None:
                 on_iteration(iteration)
         else:
             iteration = fit_cfg.iterations
         if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
             rows.append(window_row(iteration, ""))
-        if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
+        if lead and rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
             evaluate_held_out(rows[-1], True, probe is not None and rows[-1].get("probe_psnr", "") == "", rows)
             report.record(rows[-1])
         report.finish(iteration)
-    if waits:
-        per_iteration = (time.perf_counter() - started - evaluating) / len(waits)
+    if waits and lead:
+        per_iteration = (clock() - started - evaluating) / len(waits)
         print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "
               f"of {1000 * per_iteration:.0f} ms) over {len(waits)} iterations; {source.decoded} views decoded, "
               f"{source.hits} from the cache, at most {source.peak_held} decoded views held", file=sys.stderr)
 
     if grid_delay and iteration <= grid_delay:  # stopped before the switch: store the grid under the preset's lambdas
         start_grid_smoothing()
+    if parallel is not None:
+        reducer.close()
+        parallel.check_replicas(model, f"at the end (iteration {iteration})")
+        if not lead:
+            return avatar_path
     with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
-        checkpoint(avatar_path, iteration, wall_before + time.perf_counter() - started)
+        checkpoint(avatar_path, iteration, wall_before + clock() - started)
     state_path.unlink(missing_ok=True)
     return avatar_path
