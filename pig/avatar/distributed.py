@@ -41,6 +41,7 @@ from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare
 from pig.render.api import render_timesteps
 
 DEFAULT_BUCKET_MB = 25.0  # gradients all-reduced in buckets of about this size, as DistributedDataParallel's default
+FIRST_FAILURE = "first_failure"  # the store's key for the error of the first rank that failed
 DEFAULT_TIMEOUT_S = 1800.0  # a collective that waits longer fails (a rank died or hangs) instead of hanging forever
 
 
@@ -92,7 +93,7 @@ class LossShare:
     weight: float
     lpips_rows: np.ndarray | None
     lpips_offsets: np.ndarray | None
-    lpips_count: torch.Tensor | None
+    lpips_count: torch.Tensor | float | None
 
 
 class GradientReducer:
@@ -290,11 +291,11 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
             mine = torch.zeros((), device=background.device)
             for parts in by_size.values():
                 for positions, _, vb in parts:
-                    sees = torch.as_tensor(np.isin(positions, seen), device=vb.masks.device)
+                    sees = _to_device(np.isin(positions, seen), vb.masks.device)
                     mine = mine + (vb.masks.flatten(1).any(1) & sees).sum()
             count = parallel.sum_count(mine)
         elif loss.lpips_active:
-            count = torch.tensor(float(len(seen)), device=background.device)
+            count = float(len(seen))
         terms: dict[str, torch.Tensor] = {}
         for (width, height), parts in sorted(by_size.items()):
             positions = np.concatenate([np.asarray(p) for p, _, _ in parts])
@@ -311,6 +312,12 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
 
 
 
+
+def _to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A small host array on `device`, through pinned memory to a GPU so that the copy does not wait for the queue."""
+    tensor = torch.from_numpy(array)
+    return tensor.pin_memory().to(device, non_blocking=True) if device.type == "cuda" else tensor.to(device)
+
 def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, processes: int, device_type: str,
                  overwrite: bool = False, progress_s: float | None = None, tensorboard: bool = False,
                  rank_hooks: Callable[[int], RankHooks] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S) -> Path:
@@ -320,6 +327,7 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
     The processes are started here (spawned) and meet through a store that this process serves on the loopback
     interface; the first that fails stops the others, and its error is raised here. `rank_hooks(rank)` gives a rank
     its clock and callbacks (tests, benchmarks); `timeout_s` bounds a collective's wait."""
+    from pig.avatar.fit_progress import TENSORBOARD_DIR
     from pig.avatar.training import OUTPUT_FILES
     from pig.progress import LOG_INTERVAL_S
     from pig._outputs import claim_files, output_lock
@@ -336,19 +344,23 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
         raise ValueError(f"fit_parallel: device type must be 'cuda' or 'cpu', found {device_type!r}")
     output_dir, capture_dir = Path(output_dir), Path(capture_dir)
     with output_lock(output_dir, "fit"):
-        claim_files(output_dir, OUTPUT_FILES, "fit", (capture_dir,), overwrite)  # refused here, before any process
+        # Refused here, before any process starts; rank 0 then writes these.
+        claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
         store = dist.TCPStore("127.0.0.1", 0, processes, is_master=True, timeout=timedelta(seconds=timeout_s),
                               wait_for_workers=False)
         args = (store.port, processes, device_type, str(capture_dir), str(output_dir), preset_name, variant,
                 LOG_INTERVAL_S if progress_s is None else progress_s, tensorboard, rank_hooks, timeout_s)
         try:
             start_processes(_rank_main, args=args, nprocs=processes, join=True, start_method="spawn")
-        except ProcessRaisedException as err:
+        except (ProcessRaisedException, ProcessExitedException) as err:
+            # The first rank that failed names the cause; the others fail after it, of the broken connection.
+            if store.check([FIRST_FAILURE]):
+                raise RuntimeError(f"fit {store.get(FIRST_FAILURE).decode()}") from None
+            if isinstance(err, ProcessExitedException):
+                raise RuntimeError(f"fit rank {err.error_index} of {processes} ended with exit code {err.exit_code}"
+                                   + (f" (signal {err.signal_name})" if err.signal_name else "")) from None
             lines = [line for line in str(err).strip().splitlines() if line.strip()]
             raise RuntimeError(f"fit rank {err.error_index} of {processes}: {lines[-1] if lines else err}") from None
-        except ProcessExitedException as err:
-            raise RuntimeError(f"fit rank {err.error_index} of {processes} ended with exit code {err.exit_code}"
-                               + (f" (signal {err.signal_name})" if err.signal_name else "")) from None
     return output_dir / "avatar.pt"
 
 
@@ -373,5 +385,8 @@ def _rank_main(rank: int, port: int, world: int, device_type: str, capture_dir: 
     try:
         fit_rank(Path(capture_dir), Path(output_dir), preset_name, variant, parallel, hooks.on_iteration, hooks.phase,
                  progress_s, tensorboard)
-    finally:
-        dist.destroy_process_group()
+    except BaseException as err:
+        if store.add("failures", 1) == 1:  # before this process ends, so before another rank sees it gone
+            store.set(FIRST_FAILURE, f"rank {rank} of {world}: {type(err).__name__}: {err}")
+        raise  # the process ends without destroying the group: NCCL's teardown may wait on the failed collective
+    dist.destroy_process_group()

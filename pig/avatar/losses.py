@@ -69,7 +69,7 @@ def fit_note(record: dict) -> str:
 
 def lpips_views(lpips, x: torch.Tensor, y: torch.Tensor, masks: torch.Tensor, background: torch.Tensor, form: str,
                 crop: int = 512, offsets: torch.Tensor | None = None, sliced: bool = False,
-                count: torch.Tensor | None = None) -> torch.Tensor:
+                count: torch.Tensor | float | None = None) -> torch.Tensor:
     """Eq. 15's LPIPS term of (B, 3, H, W) renders `x` and targets `y` (bands applied) in `form` (LPIPS_FORMS).
 
     "full": the mean over views of `lpips(x, y)` on the whole frames. "mmlphuman": the mean over the views with a
@@ -87,7 +87,7 @@ def lpips_views(lpips, x: torch.Tensor, y: torch.Tensor, masks: torch.Tensor, ba
     cx, valid = crop_fn(x, masks, background, crop, offsets)
     cy, _ = crop_fn(y, masks, background, crop, offsets)
     weights = valid.to(torch.float32)
-    return (lpips(cx, cy) * weights).sum() / (weights.sum() if count is None else count).clamp(min=1)
+    return (lpips(cx, cy) * weights).sum() / (weights.sum() if count is None else torch.as_tensor(count)).clamp(min=1)
 
 
 def band_radius(height: int, radius_px: float, reference_height: int) -> int:

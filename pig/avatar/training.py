@@ -275,6 +275,8 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     (pig.avatar.fit_progress) goes to stderr every `progress_s` seconds and at each held-out evaluation, which
     also redraws train_log.png; `tensorboard` adds TensorBoard scalars under `output_dir`/tensorboard/.
 
+    One process on `device`; pig.avatar.distributed.fit_parallel fits on several GPUs at once.
+
     Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
     or with `overwrite`.
 
