@@ -11,11 +11,14 @@ from typing import Callable, TypeVar
 import torch
 
 T = TypeVar("T")
+captures = 0  # graphs captured in this process: a fit's training seconds leave the steps that capture out
 
 
 def capture(run: Callable[[], T], device: torch.device, warmups: int = 1) -> tuple[torch.cuda.CUDAGraph, T]:
     """(graph, outputs of the captured call) of `run()`. It is first called `warmups` times on a side stream, as
     capture requires: compilation and the allocator's first allocations must happen outside the graph."""
+    global captures
+    captures += 1
     side = torch.cuda.Stream(device)
     side.wait_stream(torch.cuda.current_stream(device))
     with torch.cuda.stream(side):

@@ -138,9 +138,10 @@ def test_fit_logs_probes_on_schedule_and_a_resume_keeps_it(small_capture, tmp_pa
     probe_at_5 = log.loc[log["iteration"] == 5, "probe_psnr"].item()
     assert f"probe PSNR {probe_at_5:.2f} dB (iteration 5)" in capsys.readouterr().err  # the progress line's
     assert (log["eval_s"].notna() == (log["probe_psnr"].notna() | log["heldout_psnr"].notna())).all()
-    # train_s leaves every in-run evaluation out (those at 5, 6 and 10 before the last row).
+    # train_s leaves every in-run evaluation out (those at 5, 6 and 10 before the last row), and the checkpoint writes
+    # (one an iteration here) too.
     last = log.iloc[-1]
-    assert last["wall_s"] - last["train_s"] == pytest.approx(log["eval_s"][log["iteration"].between(1, 11)].sum(), abs=5e-3)
+    assert last["wall_s"] - last["train_s"] >= log["eval_s"][log["iteration"].between(1, 11)].sum() - 5e-3
 
     class Killed(Exception):
         pass

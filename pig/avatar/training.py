@@ -41,6 +41,7 @@ from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_wr
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
 from pig.avatar.probe import Probe
 from pig.avatar.train_plot import plot_train_log
+from pig.avatar.training_clock import TrainingClock
 from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.config import DEFAULT_PRESET, ConfigError, load_preset, load_section, resolve_device
@@ -56,14 +57,15 @@ from pig._io import write_text
 from pig._outputs import claim_files, output_lock
 
 # lpips_term: the LPIPS term's state on every row (pig.avatar.losses.LPIPS_STATES; "on" is the paper's loss).
-# train_s: wall time less this run's held-out evaluations and train_log.png redraws (what the time budget counts; the x
-# axis of the error-against-time plots); logs written before it existed lack the column. heldout_psnr: of the weight
+# train_s: training seconds, wall time less held-out evaluations, train_log.png redraws, checkpoint writes and
+# compilation (pig.avatar.training_clock: what the time budget counts; the x axis of the error-against-time plots);
+# logs written before it existed lack the column. compile_s: the seconds of compilation left out of train_s so far. heldout_psnr: of the weight
 # average once it has started (fit.average_decay), else of the weights of that iteration; heldout_psnr_iterate: of that
 # iteration's own weights while an average is evaluated (what the average buys), else empty. probe_psnr: the cheap
 # held-out PSNR of pig.avatar.probe (fit.probe_every; mask boxes, not frames: lower than heldout_psnr), of the weights
 # heldout_psnr is of. eval_s: seconds this row's held-out evaluations and the redraw of train_log.png took.
 LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr",
-               "heldout_psnr_iterate", "probe_psnr", "eval_s", "data_wait_ms"]
+               "heldout_psnr_iterate", "probe_psnr", "eval_s", "data_wait_ms", "compile_s"]
 EVALUATION_COLUMNS = ["heldout_psnr", "heldout_psnr_iterate", "probe_psnr", "eval_s"]  # "" in rows without one
 OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
 # train_log.png is redrawn at the start, at each full held-out evaluation (the end's included), and at a probe when
@@ -268,7 +270,8 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
 def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, variant: str = "pig",
         device: torch.device | str = "cpu", on_iteration: Callable[[int], None] | None = None,
         phase: Callable[[str], AbstractContextManager] | None = None, overwrite: bool = False,
-        threads: int | None = None, progress_s: float = LOG_INTERVAL_S, tensorboard: bool = False) -> Path:
+        threads: int | None = None, progress_s: float = LOG_INTERVAL_S, tensorboard: bool = False,
+        clock: Callable[[], float] = time.perf_counter) -> Path:
     """Fit (or resume fitting) and write `output_dir`/avatar.pt; returns its path.
 
     `threads`: torch CPU threads of a CPU fit in place of the preset's `fit.cpu_threads`. A progress line
@@ -282,9 +285,11 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
     `phase(name)` wraps each part of an iteration ("sample": waiting for the iteration's views, "model",
-    "render", "loss", "backward", "step"; render and loss once per view batch, or once with `batched_render`): a hook for profilers
+    "render", "loss", "backward", "step", and "reduce", the wait for the gradients' all-reduce, in a data-parallel
+    fit; render and loss once per view batch, or once with `batched_render`): a hook for profilers
     (benchmarks/fit_gpu.py). The wait for the views is also logged (train_log.csv's data_wait_ms) and its
-    mean printed at the end.
+    mean printed at the end. `clock` (seconds) times the fit: its training seconds (train_s, what
+    `fit.time_budget_s` counts; pig.avatar.training_clock), the checkpoint cadence and the plot redraws.
     """
     callers_threads = torch.get_num_threads()
     callers_deterministic = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
@@ -292,7 +297,7 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
         with output_lock(Path(output_dir), "fit"):  # two fits into one folder: the second is refused, naming the first
             return _fit(Path(capture_dir), Path(output_dir), preset_name, variant,
                         resolve_device(str(device), "--device"), on_iteration, phase or (lambda name: nullcontext()),
-                        overwrite, threads, progress_s, tensorboard)
+                        overwrite, threads, progress_s, tensorboard, clock)
     finally:
         torch.set_num_threads(callers_threads)
         torch.use_deterministic_algorithms(callers_deterministic[0], warn_only=callers_deterministic[1])
@@ -315,14 +320,15 @@ def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
 def fit_rank(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, parallel: Parallel,
              on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager] | None,
              progress_s: float, tensorboard: bool) -> Path:
-    """One process of a data-parallel fit (pig.avatar.distributed.fit_parallel, which claimed `output_dir`)."""
+    """One process of a data-parallel fit (pig.avatar.distributed.fit_parallel, which claimed `output_dir`); its
+    clock is `parallel.clock`, rank 0's deciding for all."""
     return _fit(capture_dir, output_dir, preset_name, variant, parallel.device, on_iteration,
-                phase or (lambda name: nullcontext()), False, None, progress_s, tensorboard, parallel)
+                phase or (lambda name: nullcontext()), False, None, progress_s, tensorboard, parallel.clock, parallel)
 
 
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
          on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
-         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool,
+         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool, now: Callable[[], float],
          parallel: Parallel | None = None) -> Path:
     preset = load_preset(preset_name)
     overrides = variant_overrides(preset, variant)
@@ -340,7 +346,6 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         torch.set_num_threads(fit_cfg.cpu_threads)
     use_deterministic_kernels(device, fit_cfg.deterministic)
     lead = parallel is None or parallel.lead  # evaluates, logs and writes
-    clock = time.perf_counter if parallel is None else parallel.clock  # rank 0's decides in a data-parallel fit
     if parallel is None:
         claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
@@ -388,12 +393,15 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if average is not None:  # the grid's tensors were re-based: an average across the switch means nothing
             average.restart()
 
-    start, wall_before, rows = 0, 0.0, []
+    start, wall_before, train_before, compile_before, rows = 0, 0.0, 0.0, 0.0, []
     if state_path.exists():
         start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings, loss_terms,
                                                        average)
         if lead:
             print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
+        # The checkpoint's own row (a save logs one) holds the training seconds so far; older logs lack them.
+        train_before = float(rows[-1].get("train_s") or wall_before) if rows else wall_before
+        compile_before = float(rows[-1].get("compile_s") or 0.0) if rows else 0.0
         if grid_delay and start > grid_delay:
             model.grid.set_lambdas(grid_lambdas, keep_values=False)
     if parallel is not None:
@@ -402,12 +410,14 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
     loss = LossTerms(fit_cfg, background, lpips, fit_cfg.compile)
 
-    def checkpoint(path: Path, iteration: int, wall: float) -> None:
+    def checkpoint(path: Path, iteration: int, clock: TrainingClock) -> None:
         broken = [name for name, t in model.state_dict().items() if t.is_floating_point() and not t.isfinite().all()]
         if broken:  # never written: the last checkpoint stays the last finite one
             raise _diverged(f"NaN or infinite weights in {broken[:3]}", iteration, state_path)
-        save_checkpoint(path, model, spec, optimizers, generator, iteration, wall, rows, settings, loss_terms, average)
-        _write_log(log_path, rows)
+        with clock.excluding("checkpoint"):
+            save_checkpoint(path, model, spec, optimizers, generator, iteration, clock.wall(), rows, settings, loss_terms,
+                            average)
+            _write_log(log_path, rows)
 
     with ViewSource(capture, train["frames"], device, fit_cfg.view_cache, fit_cfg.loader_workers,
                     loss.band_radius if fit_cfg.host_band else None) as source, \
@@ -429,7 +439,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             """The held-out evaluations due into `row`, then train_log.png redrawn from `shown` (to watch the fit)
             where due (REDRAW_S); returns the seconds both took, also the row's eval_s."""
             nonlocal last_draw
-            t0 = time.perf_counter()
+            t0 = now()
             averaged = average is not None and average.started
             if full and averaged:
                 row["heldout_psnr_iterate"] = held_out.psnr(model, raster)
@@ -438,24 +448,24 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                     row["heldout_psnr"] = held_out.psnr(model, raster)
                 if probing:
                     row["probe_psnr"] = probe.psnr(model, raster)
-            if full or time.perf_counter() - last_draw >= REDRAW_S:
+            if full or now() - last_draw >= REDRAW_S:
                 plot_train_log(output_dir / "train_log.png", shown, str(output_dir))
-                last_draw = time.perf_counter()
-            row["eval_s"] = round(time.perf_counter() - t0, 3)
+                last_draw = now()
+            row["eval_s"] = round(now() - t0, 3)
             return row["eval_s"]
 
         if start == 0:
             rows = [{"iteration": 0, "wall_s": 0.0, "train_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
-                     "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""), "data_wait_ms": ""}]
+                     "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""), "data_wait_ms": "",
+                     "compile_s": 0.0}]
             if lead:
                 evaluate_held_out(rows[0], *evaluations_due(fit_cfg, 0), rows)
             report.record(rows[0])
             report.print_line(0, 0.0)
 
         reducer = None if parallel is None else parallel.reduce_gradients(model)
-        started = clock()
-        evaluating = 0.0  # seconds of held-out evaluation, left out of the time budget
-        last_save = started
+        clock = TrainingClock(wall_before, train_before, now)
+        last_save = now()
         waits = []
         window: dict[str, torch.Tensor] = {}  # loss terms summed on the device since the last logged row
         window_waits: list[float] = []
@@ -467,9 +477,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             count = max(len(window_waits), 1)
             if parallel is not None:
                 window = parallel.sum_terms(window)
-            now = clock()
-            row = {"iteration": iteration, "wall_s": round(wall_before + now - started, 3),
-                   "train_s": round(wall_before + now - started - evaluating, 3), "lod": lod,
+            row = {"iteration": iteration, "wall_s": round(clock.wall(), 3), "train_s": round(clock.training(), 3),
+                   "compile_s": round(compile_before + clock.excluded["compilation"], 3), "lod": lod,
                    "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""),
                    "data_wait_ms": round(1000 * float(np.mean(window_waits or [0.0])), 3),
                    **{key: window[name].item() / count if name in window else "" for key, name in
@@ -479,7 +488,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
 
         def fraction_done(i: int) -> tuple[float, float]:
             """(training seconds so far, the run's fraction done before iteration i: iterations or time budget)."""
-            trained = wall_before + clock() - started - evaluating
+            trained = clock.training()
             if fit_cfg.time_budget_s is None:
                 return trained, i / fit_cfg.iterations
             return trained, max(i / fit_cfg.iterations, trained / fit_cfg.time_budget_s)
@@ -488,7 +497,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         for i in range(start, fit_cfg.iterations):
             trained, done = fraction_done(i)
             stop = fit_cfg.time_budget_s is not None and trained >= fit_cfg.time_budget_s
-            if parallel is not None:
+            if parallel is not None:  # rank 0's clock decides for every rank
                 stop, done = parallel.decide(stop, done, sampler.picks(i).share.digest, i)
             if stop:
                 break
@@ -503,29 +512,30 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 batch = batches.get(i)
             waits.append(batch.wait_s)
             window_waits.append(batch.wait_s)
-            if parallel is None:
-                terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
-            else:
-                terms = shard_loss(model, batch, loss, raster, background, phase, parallel)
-            with phase("backward"):
-                for opt in optimizers:
-                    opt.zero_grad(set_to_none=True)
-                terms["total"].backward()
-            if reducer is not None:
-                with phase("reduce"):
-                    reducer.finish()
-            with phase("step"):
-                for opt in optimizers:
-                    opt.step()
-                if average is not None and done >= fit_cfg.average_start:
-                    average.update()
+            with clock.iteration():  # a step that compiles a graph counts as compilation, not training
+                if parallel is None:
+                    terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
+                else:
+                    terms = shard_loss(model, batch, loss, raster, background, phase, parallel)
+                with phase("backward"):
+                    for opt in optimizers:
+                        opt.zero_grad(set_to_none=True)
+                    terms["total"].backward()
+                if reducer is not None:
+                    with phase("reduce"):
+                        reducer.finish()
+                with phase("step"):
+                    for opt in optimizers:
+                        opt.step()
+                    if average is not None and done >= fit_cfg.average_start:
+                        average.update()
             for key, value in terms.items():
                 window[key] = window.get(key, 0) + value.detach()
 
             iteration = i + 1
             full, probing = evaluations_due(fit_cfg, iteration)
             evaluate = full or probing
-            save = iteration < fit_cfg.iterations and clock() - last_save > 60 * fit_cfg.checkpoint_minutes
+            save = iteration < fit_cfg.iterations and now() - last_save > 60 * fit_cfg.checkpoint_minutes
             if parallel is not None:
                 save = bool(parallel.shared(save)[0])
             if evaluate or save or iteration % fit_cfg.log_every == 0:
@@ -533,7 +543,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 if not math.isfinite(row["loss"]):  # read back anyway: a diverged fit stops here, not at the end
                     raise _diverged(f"the training loss is {row['loss']}", iteration, state_path)
                 if evaluate and lead:
-                    evaluating += evaluate_held_out(row, full, probing, rows + [row])
+                    with clock.excluding("evaluation"):
+                        evaluate_held_out(row, full, probing, rows + [row])
                 rows.append(row)
                 report.record(row)
             report.step(iteration, min(fraction_done(iteration)[1], 1.0), evaluate)
@@ -541,8 +552,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 if parallel is not None:
                     parallel.check_replicas(model, f"at iteration {iteration}")
                 if lead:
-                    checkpoint(state_path, iteration, wall_before + clock() - started)
-                last_save = clock()
+                    checkpoint(state_path, iteration, clock)
+                last_save = now()
             if on_iteration is not None:
                 on_iteration(iteration)
         else:
@@ -550,14 +561,18 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
             rows.append(window_row(iteration, ""))
         if lead and rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
-            evaluate_held_out(rows[-1], True, probe is not None and rows[-1].get("probe_psnr", "") == "", rows)
+            with clock.excluding("evaluation"):
+                evaluate_held_out(rows[-1], True, probe is not None and rows[-1].get("probe_psnr", "") == "", rows)
             report.record(rows[-1])
         report.finish(iteration)
     if waits and lead:
-        per_iteration = (clock() - started - evaluating) / len(waits)
+        per_iteration = (clock.training() - train_before) / len(waits)
         print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "
               f"of {1000 * per_iteration:.0f} ms) over {len(waits)} iterations; {source.decoded} views decoded, "
               f"{source.hits} from the cache, at most {source.peak_held} decoded views held", file=sys.stderr)
+    if clock.excluded and lead:
+        print("fit: left out of the training seconds: " + ", ".join(f"{kind} {seconds:.1f} s" for kind, seconds in
+                                                                    sorted(clock.excluded.items())), file=sys.stderr)
 
     if grid_delay and iteration <= grid_delay:  # stopped before the switch: store the grid under the preset's lambdas
         start_grid_smoothing()
@@ -567,6 +582,6 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         if not lead:
             return avatar_path
     with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
-        checkpoint(avatar_path, iteration, wall_before + clock() - started)
+        checkpoint(avatar_path, iteration, clock)
     state_path.unlink(missing_ok=True)
     return avatar_path
