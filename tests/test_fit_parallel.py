@@ -106,8 +106,16 @@ def _step_rank(rank: int, port: int, capture_dir: str, preset_path: str, out: st
     dist.init_process_group("gloo", store=store, rank=rank, world_size=WORLD, timeout=timedelta(seconds=120))
     torch.set_num_threads(1)
     try:
-        result = _one_step(Path(capture_dir), preset_path, Parallel(rank, WORLD, torch.device("cpu"), dist.group.WORLD))
-        torch.save(result[:3] + (asdict(result[3]),), Path(out) / f"rank{rank}.pt")
+        parallel = Parallel(rank, WORLD, torch.device("cpu"), dist.group.WORLD)
+        result = _one_step(Path(capture_dir), preset_path, parallel)
+        # Rank 0's decisions reach every rank; a rank whose picks differ from rank 0's is stopped.
+        decided = parallel.decide(rank == 1, 0.25 * (rank + 1), result[3].digest, 0)
+        try:
+            parallel.decide(False, 0.0, result[3].digest + rank, 1)
+            refused = ""
+        except RuntimeError as err:
+            refused = str(err)
+        torch.save(result[:3] + (asdict(result[3]), decided, refused), Path(out) / f"rank{rank}.pt")
     finally:
         dist.destroy_process_group()
 
@@ -120,7 +128,9 @@ def test_two_gloo_processes_compute_the_one_process_step(small_capture, tmp_path
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(WORLD)]
     terms, grads, weights, _ = _one_step(small_capture, preset, None)
 
-    places = [tuple(place[2] for place in share["places"]) for *_, share in ranks]
+    places = [tuple(place[2] for place in share["places"]) for *_, share, _, _ in ranks]
+    assert [decided for *_, decided, _ in ranks] == [(False, 0.25)] * 2  # rank 0's, whatever rank 1 measured
+    assert ranks[0][5] == "" and "rank 1 drew other views than rank 0 at iteration 1" in ranks[1][5]
     assert sorted(places[0] + places[1]) == list(range(6)) and all(places)  # disjoint, together the whole batch
     assert {k: float(v) for k, v in ranks[0][0].items()} == {k: float(v) for k, v in ranks[1][0].items()}
     assert set(ranks[0][0]) == set(terms) and terms["lpips"] > 0

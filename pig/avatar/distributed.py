@@ -277,7 +277,7 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
     by_size: dict[tuple[int, int], list] = {}
     with phase("render"):
         for (width, height, _), members in groups.items():
-            ks = torch.tensor([k for k, _ in members], device=g.means.device)
+            ks = _to_device(np.array([k for k, _ in members]), g.means.device)
             out = render_timesteps(g.means[ks], g.quats[ks], g.scales[ks], g.opacities[ks], g.sh[ks],
                                    torch.stack([vb.viewmats for _, vb in members]), torch.stack([vb.Ks for _, vb in members]),
                                    width, height, background, backend=raster.backend, max_pairs=raster.max_pairs)
