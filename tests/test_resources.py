@@ -134,6 +134,14 @@ def test_workflow_jobs_take_the_preset_resources(tmp_path):
     assert "slurm_extra" not in tables
 
 
+def test_workflow_fit_on_several_gpus_asks_for_them_and_passes_them_to_the_fit(tmp_path):
+    code, output = dry_run(tmp_path, {"fit_avatar": {"gpu": 2, "slurm_extra": "--gres=gpu:a100:2"}})
+    assert code == 0, output[-3000:]
+    assert job_settings(output, "fit_avatar")["gpu"] == "2"
+    command = next(line for line in output.splitlines() if "python -m pig fit " in line)
+    assert "python -m pig.gpu_slots --gpus 2 " in command and " --gpus 2 2>&1" in command  # 2 slots, 2 processes
+
+
 def test_workflow_refuses_a_resources_entry_no_rule_reads(tmp_path):
     code, output = dry_run(tmp_path, {"fit": {"gpu": 1}})
     assert code != 0
