@@ -226,6 +226,7 @@ class Parallel:
         return dict(zip(keys, stacked.unbind()))
 
     def sum_count(self, count: torch.Tensor) -> torch.Tensor:
+        """A count (a device scalar) summed over the ranks, on the device (no wait for the host)."""
         total = count.to(torch.float32).reshape(1).clone()
         dist.all_reduce(total)
         return total[0]
@@ -311,12 +312,11 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
     return terms
 
 
-
-
 def _to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
     """A small host array on `device`, through pinned memory to a GPU so that the copy does not wait for the queue."""
     tensor = torch.from_numpy(array)
     return tensor.pin_memory().to(device, non_blocking=True) if device.type == "cuda" else tensor.to(device)
+
 
 def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, processes: int, device_type: str,
                  overwrite: bool = False, progress_s: float | None = None, tensorboard: bool = False,
