@@ -12,19 +12,22 @@ fit; N > 1 the data-parallel one.
 `--parity ITERATIONS` (with `--repeats R`): R fits of that many iterations per GPU count, each ending with the
 held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick).
 
-NVLink multicast stays off in this benchmark's processes (the GPU machines here do not support it): NCCL's NVLS
-collectives (NCCL_NVLS_ENABLE=0), torch's symmetric-memory multicast (TORCH_SYMM_MEM_DISABLE_MULTICAST=1) and
-NVSHMEM's (NVSHMEM_DISABLE_NVLS=1); set here, for this script only (docs/gpu.md).
+NVLink multicast stays off in this benchmark's processes (it must on the GPU machines this project measures on):
+NCCL's NVLS collectives (NCCL_NVLS_ENABLE=0), torch's symmetric-memory multicast (TORCH_SYMM_MEM_DISABLE_MULTICAST=1)
+and NVSHMEM's (NVSHMEM_DISABLE_NVLS=1); set here, for this script and the processes it starts only (docs/gpu.md).
 
-Run on a 2-GPU machine (from the repository root, `.gpu` carried; each command stays under 10 minutes):
+Run on a 2-GPU machine from the repository root (`.gpu` carried), one GPU count per command so that each stays
+within a 10-minute limit (the first also makes the capture; compilation takes minutes the first time per count):
 
-    bash .gpu/device-setup.sh && export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text && \\
-        python3 benchmarks/fit_multi_gpu.py --gpus 1 2 --iterations 120 --warmup 40 --profile-phases 10
-    python3 benchmarks/fit_multi_gpu.py --reuse-capture --gpus 1 --parity 3000 --repeats 1   # per count, twice
-    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --parity 3000                    # the parity table
+    bash .gpu/device-setup.sh && export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text
+    python3 benchmarks/fit_multi_gpu.py --gpus 1 --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --gpus 2 --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --gpus 1 --parity 3000 --repeats 1   # each GPU count twice
+    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --parity 3000    # the parity table
 
-Where one command would pass a time limit, run one GPU count per command (`--reuse-capture --gpus 2`) and print
-the tables of all with `--collect --gpus 1 2`.
+The capture is made once under --workdir and kept, with every run's records (`--collect` prints the tables of
+the runs there without running any; `--new-capture` makes the capture again).
 """
 from __future__ import annotations
 
@@ -54,6 +57,7 @@ from fit_gpu import PhaseTimer, main as fit_gpu_main  # noqa: E402
 
 # Parts of a step that every rank computes whole, whatever the GPU count (the rest is shared out by views).
 REPLICATED = ("model.grid", "model.anchor_solve", "model.refiner", "step")
+CAPTURE = "data/capture"  # under --workdir: benchmarks/fit_gpu.py's capture, made once, kept for later commands
 
 
 class RankProbe:
@@ -114,7 +118,7 @@ def run_one(args) -> int:
     from pig.avatar.training import fit
 
     gpus, workdir = args.run, args.workdir
-    capture = workdir / "capture"
+    capture = workdir / CAPTURE
     if args.parity:
         name = f"parity_{gpus}gpu_{args.tag}"
         iterations, eval_every, hooks = args.parity, args.parity, None
@@ -155,7 +159,8 @@ def main(argv=None) -> int:
     parser.add_argument("--gpus", type=int, nargs="+", default=[1, 2], help="GPU counts, in this order")
     parser.add_argument("--frames", type=int, default=10, help="captured frames (the capture of benchmarks/fit_gpu.py)")
     parser.add_argument("--cameras", type=int, default=8)
-    parser.add_argument("--reuse-capture", action="store_true", help="keep an existing capture in --workdir")
+    parser.add_argument("--new-capture", action="store_true",
+                        help="make the capture again (by default one in --workdir is kept, as are earlier runs' records)")
     parser.add_argument("--iterations", type=int, default=120, help="iterations up to the end of the timed window")
     parser.add_argument("--warmup", type=int, default=40, help="iterations before it (compilation happens there)")
     parser.add_argument("--profile-phases", type=int, default=10, help="iterations timed per phase after the window")
@@ -174,9 +179,9 @@ def main(argv=None) -> int:
     if max(args.gpus) > available:
         print(f"fit_multi_gpu: {max(args.gpus)} GPUs asked for, {available} visible", file=sys.stderr)
         return 1
-    if not args.collect and not (args.reuse_capture and (args.workdir / "capture").exists()):
-        fit_gpu_main(["--workdir", str(args.workdir), "--frames", str(args.frames), "--cameras", str(args.cameras),
-                      "--capture-only"])
+    if not args.collect and (args.new_capture or not (args.workdir / CAPTURE).exists()):
+        fit_gpu_main(["--workdir", str((args.workdir / CAPTURE).parent), "--frames", str(args.frames), "--cameras",
+                      str(args.cameras), "--capture-only"])
     base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed)]
     if args.parity:
         for repeat in range(0 if args.collect else args.repeats):
