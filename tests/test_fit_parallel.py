@@ -136,14 +136,16 @@ def test_two_gloo_processes_compute_the_one_process_step(small_capture, tmp_path
     assert set(ranks[0][0]) == set(terms) and terms["lpips"] > 0
     for key in terms:  # the iteration's loss: each rank's part, summed
         torch.testing.assert_close(ranks[0][0][key], terms[key], rtol=1e-5, atol=1e-7)
-    # The summed gradients against the one-process ones. Float32 rounding: each rank sums its views' contributions,
-    # then the two sums are added, where one process adds them in another order; the difference is a few units in
-    # the last place of the largest contributions (2^-24 ~ 6e-8 relative each), so 1e-5 of the tensor's largest
-    # gradient leaves a margin of ~100x while a lost or doubled view (a 1/6 share) would be ~1e-1 of it.
+    # The summed gradients against the one-process ones, within float32 rounding: each rank sums its own views'
+    # contributions and the two sums are added, where one process adds them in another order, and the LPIPS
+    # network and the renders run on batches of other sizes (other blockings of their sums). Each such difference is
+    # a few units in the last place (2^-24 ~ 6e-8) of the terms summed; through the backward they added up to at
+    # most 2.8e-6 of a tensor's largest gradient (measured, CPU). Tolerance 3e-5 of it: 10x that, while a view lost
+    # or counted twice (a sixth of the batch) moves gradients by ~1e-1 of it.
     for name, reference in grads.items():
         assert torch.equal(ranks[0][1][name], ranks[1][1][name]), name
         scale = reference.abs().max().item()
-        torch.testing.assert_close(ranks[0][1][name], reference, rtol=0, atol=1e-5 * scale, msg=name)
+        torch.testing.assert_close(ranks[0][1][name], reference, rtol=0, atol=3e-5 * scale, msg=name)
     assert any(grads[name].abs().max() > 0 for name in grads if name.startswith("refiner"))
     for name, value in weights.items():  # after the step: identical on every rank, and the one-process step's
         assert torch.equal(ranks[0][2][name], ranks[1][2][name]), name
