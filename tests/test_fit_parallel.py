@@ -59,9 +59,9 @@ def test_shard_picks_pose_only_the_timesteps_their_views_need():
             assert all(cam in s.steps[k][1] for k, cam, _ in s.share.places)
 
 
-def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None):
-    """One iteration (0, at progress 0.5) of the preset's fit: loss terms, gradients, the weights after the step,
-    and the rank's share of the views; through the fit's functions, the model built as the fit builds it."""
+def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, device: str = "cpu"):
+    """One iteration (0, at progress 0.5) of the preset's fit on `device`: loss terms, gradients, the weights after
+    the step, and the rank's share of the views; through the fit's functions, the model built as the fit builds it."""
     preset = load_preset(preset_path)
     fit_cfg = load_section(preset, "fit", FitConfig)
     precond = load_section(preset, "precond", PrecondConfig)
@@ -72,17 +72,17 @@ def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None):
             "params": asdict(capture.params.select([capture.frames.index(f) for f in train["frames"]])),
             "frame_ids": [int(f) for f in train["frames"]], "variant": "pig"}
     torch.manual_seed(0)
-    model = build_avatar(spec)
+    model = build_avatar(spec).to(device)
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond)
-    background = torch.as_tensor(capture.background, dtype=torch.float32)
-    loss = LossTerms(fit_cfg, background, lpips_term(fit_cfg)[0], False)
+    background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
+    loss = LossTerms(fit_cfg, background, lpips_term(fit_cfg, device)[0], False)
     loss.at(0, 0.5)
     raster = load_section(preset, "rasterizer", RasterizerConfig)
     seen_by = tuple(tuple(c for c in train["cameras"] if capture.has(c, f)) for f in train["frames"])
     sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
     if parallel is not None:
         sampler = ShardedSampler(sampler, parallel.rank, parallel.world)
-    with ViewSource(capture, train["frames"], "cpu", 0, 1) as source:
+    with ViewSource(capture, train["frames"], device, 0, 1) as source:
         batch = TrainingBatches(source, sampler, 1, 0).get(0)
     phase = lambda name: nullcontext()
     if parallel is None:
@@ -94,20 +94,29 @@ def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None):
     if parallel is not None:
         reducer.finish()
         terms = parallel.sum_terms(terms)
-    grads = {name: p.grad.clone() for name, p in model.named_parameters()}
+    grads = {name: p.grad.cpu() for name, p in model.named_parameters()}
     for opt in optimizers:
         opt.step()
-    return ({k: v.detach() for k, v in terms.items()}, grads, {k: v.detach().clone() for k, v in model.state_dict().items()},
+    return ({k: v.detach().cpu() for k, v in terms.items()}, grads, {k: v.detach().cpu() for k, v in model.state_dict().items()},
             batch.share)
 
 
-def _step_rank(rank: int, port: int, capture_dir: str, preset_path: str, out: str) -> None:
-    store = dist.TCPStore("127.0.0.1", port, WORLD, is_master=False, timeout=timedelta(seconds=120))
-    dist.init_process_group("gloo", store=store, rank=rank, world_size=WORLD, timeout=timedelta(seconds=120))
+def _step_rank(rank: int, port: int, capture_dir: str, preset_path: str, out: str, device_type: str = "cpu") -> None:
+    """One rank of the parity step: gloo on the CPU, or NCCL on cuda:rank with gloo for the decisions (as a fit)."""
+    timeout = timedelta(seconds=120)
+    store = dist.TCPStore("127.0.0.1", port, WORLD, is_master=False, timeout=timeout)
+    device = torch.device("cuda", rank) if device_type == "cuda" else torch.device("cpu")
+    if device_type == "cuda":
+        torch.cuda.set_device(device)
+        dist.init_process_group("nccl", store=store, rank=rank, world_size=WORLD, timeout=timeout, device_id=device)
+        control = dist.new_group(backend="gloo", timeout=timeout)
+    else:
+        dist.init_process_group("gloo", store=store, rank=rank, world_size=WORLD, timeout=timeout)
+        control = dist.group.WORLD
     torch.set_num_threads(1)
     try:
-        parallel = Parallel(rank, WORLD, torch.device("cpu"), dist.group.WORLD)
-        result = _one_step(Path(capture_dir), preset_path, parallel)
+        parallel = Parallel(rank, WORLD, device, control)
+        result = _one_step(Path(capture_dir), preset_path, parallel, str(device))
         # Rank 0's decisions reach every rank; a rank whose picks differ from rank 0's is stopped.
         decided = parallel.decide(rank == 1, 0.25 * (rank + 1), result[3].digest, 0)
         try:
