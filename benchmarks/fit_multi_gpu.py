@@ -95,7 +95,7 @@ class _null:
 
 
 def rank_hooks(out: str, warmup: int, iterations: int, profile: int, rank: int):
-    from pig.avatar.distributed import RankHooks
+    from pig.avatar.parallel_fit import RankHooks
 
     probe = RankProbe(out, warmup, iterations, profile, rank)
     return RankHooks(on_iteration=probe, phase=probe.phase)
@@ -114,7 +114,7 @@ def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, see
 
 def run_one(args) -> int:
     """One GPU count (`--run N`), in this process: the timed fit, or the parity fit; writes its records."""
-    from pig.avatar.distributed import fit_parallel
+    from pig.avatar.parallel_fit import fit_parallel
     from pig.avatar.training import fit
 
     gpus, workdir = args.run, args.workdir

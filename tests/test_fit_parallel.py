@@ -16,8 +16,8 @@ from torch.multiprocessing import start_processes
 from pig.avatar.batches import Picks, Sampler, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.config import AvatarConfig
-from pig.avatar.distributed import (GradientReducer, Parallel, RankHooks, ShardedSampler, fit_parallel, shard_loss,
-                                    shard_picks, split_pairs)
+from pig.avatar.distributed import GradientReducer, Parallel, ShardedSampler, shard_loss, shard_picks, split_pairs
+from pig.avatar.parallel_fit import RankHooks, fit_parallel
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.losses import lpips_term
 from pig.avatar.training import LossTerms, fit, iteration_loss

@@ -278,7 +278,7 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     (pig.avatar.fit_progress) goes to stderr every `progress_s` seconds and at each held-out evaluation, which
     also redraws train_log.png; `tensorboard` adds TensorBoard scalars under `output_dir`/tensorboard/.
 
-    One process on `device`; pig.avatar.distributed.fit_parallel fits on several GPUs at once.
+    One process on `device`; pig.avatar.parallel_fit.fit_parallel fits on several GPUs at once.
 
     Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
     or with `overwrite`.
@@ -320,7 +320,7 @@ def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
 def fit_rank(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, parallel: Parallel,
              on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager] | None,
              progress_s: float, tensorboard: bool) -> Path:
-    """One process of a data-parallel fit (pig.avatar.distributed.fit_parallel, which claimed `output_dir`); its
+    """One process of a data-parallel fit (pig.avatar.parallel_fit.fit_parallel, which claimed `output_dir`); its
     clock is `parallel.clock`, rank 0's deciding for all."""
     return _fit(capture_dir, output_dir, preset_name, variant, parallel.device, on_iteration,
                 phase or (lambda name: nullcontext()), False, None, progress_s, tensorboard, parallel.clock, parallel)

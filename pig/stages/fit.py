@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pig.avatar.distributed import fit_parallel
+from pig.avatar.parallel_fit import fit_parallel
 from pig.avatar.training import fit
 from pig.progress import LOG_INTERVAL_S
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from preset_files import write_test_preset  # noqa: E402
 from test_fit_parallel import STEP_FIT, WORLD, _log, _one_step, _step_rank  # noqa: E402
 
-from pig.avatar.distributed import fit_parallel  # noqa: E402
+from pig.avatar.parallel_fit import fit_parallel  # noqa: E402
 
 pytestmark = [
     pytest.mark.gpu,
