@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pig.config import DEFAULT_PRESET
+from pig.job_lifetime import end_with_parent
 from pig.progress import set_quiet
 
 DEBUG_VARIABLE = "PIG_DEBUG"
@@ -126,9 +127,11 @@ def error_line(err: Exception) -> str:
 
 
 def run_cli(main: Callable[[list[str] | None], int | None], argv: list[str] | None = None) -> int:
-    """Run `main(argv)` and return its exit status; on an exception print one error line and return 1."""
+    """Run `main(argv)` and return its exit status; on an exception print one error line and return 1. In a workflow
+    job the process ends with the job's shell (pig.job_lifetime)."""
     global _traceback_requested
     _traceback_requested = False
+    end_with_parent()
     try:
         return main(argv) or 0
     except Exception as err:

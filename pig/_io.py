@@ -2,7 +2,9 @@
 temporary name, then rename. At the bottom of the package's layers: it imports nothing of pig.
 
 A killed stage never leaves a half-written PNG, CSV, JSON, plot or folder under its final name; the
-hidden temporaries a kill leaves carry the writer's process id, so the next run can remove them.
+hidden temporaries a kill leaves carry the writer's process id, so the next run can remove them. A temporary is
+created here, exclusively and without following links, under a name with a random part: a file or symbolic link
+that someone planted beside the destination is never written through, nor renamed into place.
 """
 from __future__ import annotations
 
@@ -12,7 +14,9 @@ import json
 import math
 import os
 import re
+import secrets
 import shutil
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -22,16 +26,61 @@ import cv2
 import numpy as np
 
 
-def _temporary(path: Path) -> Path:
-    """`.{stem}.{pid}.tmp{suffix}` beside `path` (the suffix kept: writers pick the format from it)."""
+# Tries at a fresh random name before giving up: only a folder crowded with planted names needs a second.
+NAME_TRIES = 16
+
+
+def _token() -> str:
+    """The random part of a temporary's name (8 hex digits)."""
+    return secrets.token_hex(4)
+
+
+def create_temporary(path: Path) -> tuple[Path, int]:
+    """(name, write-only descriptor) of a new empty hidden temporary `.{stem}.{pid}.{random}.tmp{suffix}` beside
+    `path` (the suffix kept: writers pick the format from it), created exclusively and without following links,
+    so that nothing planted under the name is written through; the caller closes the descriptor."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    for _ in range(NAME_TRIES):
+        tmp = path.with_name(f".{path.stem}.{os.getpid()}.{_token()}.tmp{path.suffix}")
+        try:
+            return tmp, os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o666)
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, f"{path.parent}: {NAME_TRIES} random temporary names for {path.name} "
+                          "were all taken; remove the hidden files beside it that nobody is writing", str(path))
+
+
+def _temporary(path: Path) -> Path:
+    """A new empty temporary beside `path` (`create_temporary`), for writers that open it by name."""
+    tmp, fd = create_temporary(path)
+    os.close(fd)
+    return tmp
 
 
 def _temporary_dir(path: Path, kind: str = "tmp") -> Path:
-    """`.{name}.{pid}.tmp` (the folder being built) or `.{name}.{pid}.old` (the one it replaces) beside `path`."""
+    """A new empty hidden folder `.{name}.{pid}.{random}.tmp` (the folder being built) or `.{name}.{pid}.{random}.old`
+    (one to rename the folder it replaces onto) beside `path`, made here: a name someone planted is never used."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    return path.with_name(f".{path.name}.{os.getpid()}.{kind}")
+    for _ in range(NAME_TRIES):
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{_token()}.{kind}")
+        try:
+            tmp.mkdir()
+            return tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, f"{path.parent}: {NAME_TRIES} random temporary names for {path.name} "
+                          "were all taken; remove the hidden folders beside it that nobody is writing", str(path))
+
+
+def _still_ours(tmp: Path, created: os.stat_result) -> None:
+    """Refuse to rename `tmp` into place when it is no longer the regular file this process created there."""
+    try:
+        now = os.lstat(tmp)
+    except FileNotFoundError:
+        raise OSError(f"{tmp}: the temporary vanished while it was written; nothing was replaced") from None
+    if not stat.S_ISREG(now.st_mode) or (now.st_dev, now.st_ino) != (created.st_dev, created.st_ino):
+        raise OSError(f"{tmp}: the temporary was replaced by another file or link while it was written; "
+                      "nothing was replaced")
 
 
 def _alive(pid: int) -> bool:
@@ -47,13 +96,15 @@ def _alive(pid: int) -> bool:
 def remove_orphans(path: str | Path) -> list[Path]:
     """Remove the temporaries of `path` that killed writers left beside it; returns what was removed.
 
-    Matches this module's file and folder temporaries (the folder form is also the earlier checkpoint
-    writer's) and the earlier `.{name}.tmp-{pid}` / `.{name}.old-{pid}` folders of the preprocess stage;
-    a temporary whose process is still running (a concurrent run) is kept.
+    Matches this module's file and folder temporaries, with or without their random part (the folder form is
+    also the earlier checkpoint writer's), and the earlier `.{name}.tmp-{pid}` / `.{name}.old-{pid}` folders of
+    the preprocess stage; a temporary whose process is still running (a concurrent run) is kept.
     """
     path = Path(path)
     stem, suffix, name = (re.escape(part) for part in (path.stem, path.suffix, path.name))
-    pattern = re.compile(rf"\.(?:{stem}\.(\d+)\.tmp{suffix}|{name}\.(\d+)\.(?:tmp|old)|{name}\.(?:tmp|old)-(\d+))")
+    random = r"(?:\.[0-9a-f]{8})?"  # the random part of this module's names (absent from earlier ones)
+    pattern = re.compile(rf"\.(?:{stem}\.(\d+){random}\.tmp{suffix}|{name}\.(\d+){random}\.(?:tmp|old)"
+                         rf"|{name}\.(?:tmp|old)-(\d+))")
     removed = []
     if not path.parent.is_dir():
         return removed
@@ -100,9 +151,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     when it raises. For writers that take a file name (torch.save, cv2.imwrite, OpenEXR, h5py). A write that
     fails on a full file system raises NoSpaceError naming `path`, whichever writer it was."""
     path = Path(path)
-    tmp = _temporary(path)
+    tmp, fd = create_temporary(path)
+    try:
+        created = os.fstat(fd)
+    finally:
+        os.close(fd)
     try:
         yield tmp
+        _still_ours(tmp, created)
         os.replace(tmp, path)
     except Exception as err:
         if _no_space(err, tmp.parent):
@@ -119,8 +175,6 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     `path` (an older folder there is removed only once the new one is in place), when it raises it is removed."""
     path = Path(path)
     tmp = _temporary_dir(path)
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
     try:
         yield tmp
         replace_dir(tmp, path)
@@ -131,8 +185,10 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
 
 def replace_dir(built: Path, path: Path) -> None:
     """Rename the folder `built` to `path`; an older folder there is removed only once the new one is in place."""
-    if path.exists():
-        old = _temporary_dir(path, "old")
+    if os.path.lexists(path):
+        if path.is_symlink() or not path.is_dir():
+            raise OSError(f"{path}: a file or link lies where the folder goes; nothing was replaced (move it away)")
+        old = _temporary_dir(path, "old")  # an empty folder, which the rename replaces
         os.replace(path, old)
         os.replace(built, path)
         shutil.rmtree(old)

@@ -99,7 +99,14 @@ def output_lock(output: Path, stage: str) -> Iterator[None]:
     path = output.with_name(f".{output.name}.lock")
     path.parent.mkdir(parents=True, exist_ok=True)
     while True:
-        handle = open(path, "a+")
+        try:  # never through a link: the holder truncates and writes the file
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW, 0o666)
+        except OSError as err:
+            if os.path.islink(path):
+                raise OutputError(f"{path}: the lock file of {output} is a symbolic link; a stage's lock is a plain "
+                                  "file, and it writes through no link: remove the link, then run again") from None
+            raise
+        handle = os.fdopen(fd, "a+")
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -151,8 +158,6 @@ def resumable_dir(output: Path, stage: str, settings: dict) -> Iterator[Path]:
                 shutil.rmtree(partial)
         if not partial.is_dir():
             fresh = _temporary_dir(output)  # renamed once the record is in: a partial folder always has one
-            shutil.rmtree(fresh, ignore_errors=True)
-            fresh.mkdir()
             write_json(fresh / PARTIAL_RECORD, record)
             os.replace(fresh, partial)
         try:

@@ -27,6 +27,7 @@ from typing import Any
 from pig.avatar.config import AvatarConfig
 from pig.avatar.fit_config import FitConfig
 from pig.config import ConfigError, config_dirs, from_dict, load_section, load_yaml, named_config
+from pig.data.formats import FORMATS, subject_path
 from pig.data.raw import CaptureError
 from pig.data.rectify import output_size
 from pig.data.splits import SplitConfig, make_split
@@ -297,13 +298,25 @@ def nominal_geometry(preset: dict[str, Any], dataset: dict[str, Any]) -> Geometr
     """The generated capture's views from the preset's `synthetic` section; a THuman4-layout capture's from its
     first subject's calibration.json and image count where present; THuman4 and DNA-Rendering from FORMATS.md
     (24 cameras x 2500 frames at 1330 x 1150; 48 cameras at 2448 x 2048 and 12 at 4096 x 3000 x 225 frames, the
-    frames a co-author's evaluation uses); None for anything else."""
+    frames a co-author's evaluation uses); an EasyMocap, ActorsHQ or AvatarReX capture's from its first subject's
+    calibration and body parameters; None for anything else."""
     if dataset.get("generated"):
         cfg = load_section(preset, "synthetic", SyntheticConfig)
         return Geometry({f"cam{i:02d}": (cfg.width, cfg.height) for i in range(cfg.cameras)}, list(range(cfg.frames)),
                         "the preset's synthetic section")
     subjects = dataset.get("subjects") or []
-    root = Path(dataset.get("root", "")) / str(subjects[0]) if subjects else None
+    try:
+        root = Path(dataset.get("root", "")) / subject_path(dataset, str(subjects[0]), "dataset") if subjects else None
+    except CaptureError:  # preprocess names the bad `subject_paths` entry
+        root = None
+    fmt = FORMATS.get(dataset.get("format"))
+    if fmt is not None and fmt.geometry is not None and root is not None and root.is_dir():
+        try:  # a file the reader refuses gives no sizes here; preprocess names what is wrong with it
+            cameras, frames = fmt.geometry(root, dataset.get("reader") or {})
+        except (CaptureError, OSError):
+            frames = []
+        if frames:
+            return Geometry(cameras, frames, f"{root}'s calibration and body parameters")
     if dataset.get("format") == "thuman4" and root is not None and (root / "calibration.json").is_file():
         try:  # a file the reader refuses gives no sizes here; preprocess names what is wrong with it
             cameras = {name: (cam.width, cam.height) for name, cam in read_calibration(root / "calibration.json").items()}

@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from pig.job_lifetime import end_with_parent
+
 # Set by the workflow on a local run: only then does the launcher hand out slots.
 LOCAL_SLOTS_ENV = "PIG_GPU_SLOTS"
 # A stand-in device list ("0,1,2"; empty: none) that replaces what the machine has (tests; or a subset of its GPUs).
@@ -26,27 +28,49 @@ DEVICES_ENV = "PIG_GPU_DEVICES"
 # Where the lock files live; by default one folder per user in the temporary folder, shared by all its workflows.
 LOCK_DIR_ENV = "PIG_GPU_LOCK_DIR"
 POLL_S = 1.0  # how often a waiting job looks for a free slot again
+# `nvidia-smi -L` answers in well under a second; a hung driver can hold it for minutes, and every Snakemake start
+# asks it (workflow/rules/common.smk), as does each GPU job's launcher.
+NVIDIA_SMI_TIMEOUT_S = 5.0
 
 
-def machine_devices() -> tuple[list[str], str]:
+def machine_devices(timeout_s: float = NVIDIA_SMI_TIMEOUT_S) -> tuple[list[str], str]:
     """(device ids for CUDA_VISIBLE_DEVICES, where they came from): PIG_GPU_DEVICES, else CUDA_VISIBLE_DEVICES (the
     devices this process may use), else one per GPU that `nvidia-smi -L` lists, else per /proc/driver/nvidia/gpus/
-    entry; none without a GPU."""
+    entry; none without a GPU. An `nvidia-smi` that gives no answer within `timeout_s` seconds (a hung driver) is
+    left behind, said so on stderr, and the /proc entries count."""
     for name in (DEVICES_ENV, "CUDA_VISIBLE_DEVICES"):
         if name in os.environ:
             ids = [part.strip() for part in os.environ[name].split(",") if part.strip()]
             # CUDA stops at the first invalid id: "-1" (a common way to hide every GPU) leaves none.
             valid = ids[: next((i for i, dev in enumerate(ids) if dev.startswith("-")), len(ids))]
             return valid, f"{name}={os.environ[name]!r}"
-    try:
-        listing = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=30, check=True).stdout
-        count = sum(1 for line in listing.splitlines() if line.startswith("GPU "))
-        return [str(i) for i in range(count)], "nvidia-smi -L"
-    except (OSError, subprocess.SubprocessError):
-        pass
     proc = Path("/proc/driver/nvidia/gpus")
+    hung = None
+    try:
+        smi = subprocess.Popen(["nvidia-smi", "-L"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    except OSError:
+        smi = None
+    if smi is not None:
+        try:
+            listing, _ = smi.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            smi.kill()
+            smi.stdout.close()
+            try:  # reaped if it dies; one stuck in the driver ends only when the driver lets it go: not waited for
+                smi.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                pass
+            hung = f"nvidia-smi -L gave no answer in {timeout_s:g} s"
+            print(f"{hung} (a hung driver?): GPUs counted from {proc} instead; set {DEVICES_ENV}=0,1,... to name "
+                  "them and skip nvidia-smi", file=sys.stderr, flush=True)
+        else:
+            if smi.returncode == 0:
+                count = sum(1 for line in listing.splitlines() if line.startswith("GPU "))
+                return [str(i) for i in range(count)], "nvidia-smi -L"
     count = len(list(proc.iterdir())) if proc.is_dir() else 0
-    return [str(i) for i in range(count)], f"{proc} (nvidia-smi not usable)" if count else "no NVIDIA GPU found"
+    if count:
+        return [str(i) for i in range(count)], f"{proc} ({hung or 'nvidia-smi not usable'})"
+    return [], "no NVIDIA GPU found" + (f" ({hung})" if hung else "")
 
 
 def lock_dir() -> Path:
@@ -103,6 +127,7 @@ def _now() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    end_with_parent()  # a job's shell killed while this waits for a slot: no orphan takes the slot later
     parser = argparse.ArgumentParser(prog="python -m pig.gpu_slots", description=__doc__.split("\n\n")[0])
     parser.add_argument("--gpus", type=int, default=1, help="slots (devices) the command needs (default 1)")
     parser.add_argument("--preset", default="?", help="the compute preset that asks for them (named in messages)")

@@ -179,7 +179,7 @@ def test_body_model(tmp_path):
     cpu = load_preset("cpu-demo")
     synthetic, source = doctor.load_dataset("synthetic")
     check = doctor.check_body_model(cpu, synthetic, source)
-    assert check.verdict == "ok" and "the real captures need one: dna, thuman4" in check.detail
+    assert check.verdict == "ok" and "the real captures need one: actorshq, avatarrex, dna, easymocap, thuman4" in check.detail
     thuman4, source = doctor.load_dataset("thuman4")
     check = doctor.check_body_model(cpu, thuman4, source)
     assert check.verdict == "missing" and "SMPLX_NEUTRAL.npz" in check.detail and "not set" in check.detail

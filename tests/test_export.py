@@ -255,7 +255,7 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(checkpoint, motion, t
     for spec in ("3:3", "4:2", "0:3:0"):
         assert f"--frames {spec!r} selects no frame" in _error(capsys, [*with_motion, f"--frames={spec}"])
     err = _error(capsys, [*base, "--motion", motion_path, "--frames", "2:9"])
-    assert f"--frames '2:9': {motion_path} has 5 frames (0..4), so STOP may be at most 5" in err
+    assert f"frames 2:9: {motion_path} has 5 frames (0..4), so STOP may be at most 5" in err
     assert "give one with --motion FILE" in _error(capsys, [*base, "--frames", "0:2"])
     assert f"{tmp_path / 'm.npz'}: motion file not found" in _error(capsys, [*base, "--motion", str(tmp_path / "m.npz")])
     # The motion reader's own messages (tests/test_motion.py covers every layout); here: they reach the user.
@@ -263,7 +263,7 @@ def test_bad_inputs_give_one_line_errors_and_write_nothing(checkpoint, motion, t
            "nan.npz": dict(fullpose=np.zeros((4, 55, 3)), transl=np.array([[0, 0, 0], [0, 0, 0], [np.nan, 0, 0], [0, 0, 0]])),
            "nokey.npz": dict(transl=np.zeros((4, 3)))}
     messages = {"short.npz": "'transl' has shape (3, 3), expected (4, 3)",
-                "nan.npz": "'transl' contains NaN or infinite values (first at index [2, 0])",
+                "nan.npz": "the translation of frame 2 is [nan, 0.0, 0.0]",
                 "nokey.npz": "no known motion layout (keys ['transl'])"}
     for name, arrays in bad.items():
         np.savez(tmp_path / name, **arrays)

@@ -109,6 +109,21 @@ def test_machine_devices_from_stand_in_visible_devices_and_nvidia_smi(tmp_path, 
     assert machine_devices() == (["0", "1", "2"], "nvidia-smi -L")
 
 
+def test_a_hung_nvidia_smi_is_left_behind_and_said_so(tmp_path, monkeypatch, capsys):
+    """An nvidia-smi that never answers, whose child keeps its output open even once it is killed (as one stuck in
+    the driver stays): the lookup returns at its limit, counts the devices otherwise, and says why on stderr."""
+    for name in (DEVICES_ENV, "CUDA_VISIBLE_DEVICES"):
+        monkeypatch.delenv(name, raising=False)
+    smi = tmp_path / "bin" / "nvidia-smi"
+    smi.parent.mkdir()
+    smi.write_text("#!/bin/sh\nsleep 20\n")
+    smi.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{smi.parent}{os.pathsep}{os.environ['PATH']}")
+    _, source = machine_devices(timeout_s=0.5)
+    assert "nvidia-smi -L gave no answer in 0.5 s" in source and source != "nvidia-smi -L"
+    assert "nvidia-smi -L gave no answer in 0.5 s" in capsys.readouterr().err
+
+
 def test_concurrent_jobs_never_share_a_device(slots):
     names = [f"job{i}" for i in range(7)]
     jobs = [slots(name, "g0,g1,g2", need=3) for name in names]

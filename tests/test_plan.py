@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import fcntl
 import itertools
-import multiprocessing
 import os
 import random
 import shutil
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -18,7 +19,6 @@ from test_workflow import (  # noqa: F401  (recorded: the fixture, shared with t
     PRESET,
     REPO,
     SUBJECT,
-    _snakemake_child,
     _workflow_config,
     edit_yaml,
     job_counts,
@@ -126,9 +126,17 @@ def _hold(path: Path):
     return fd
 
 
-def _own_group_child(argv: list[str], log: Path) -> None:
-    os.setpgrp()  # as a terminal's foreground job: Ctrl-C reaches Snakemake and its jobs
-    _snakemake_child(argv, log)
+# A safety net only: each wait below ends on what the code writes or on the process's exit, never on a deadline that a
+# loaded machine could miss. (The launcher's wait for a slot, a sleep, ends at once on SIGINT, load or not.)
+SAFETY_S = 900
+
+
+def _wait_for(condition, process: subprocess.Popen, output: Path) -> None:
+    """Returns once `condition()` holds; fails, showing the output, if `process` ends first."""
+    deadline = time.monotonic() + SAFETY_S
+    while not condition():
+        assert process.poll() is None and time.monotonic() < deadline, output.read_text()[-3000:]
+        time.sleep(0.1)
 
 
 def test_a_killed_run_resumes_without_redoing_finished_fits(recorded, tmp_path, monkeypatch):
@@ -140,25 +148,27 @@ def test_a_killed_run_resumes_without_redoing_finished_fits(recorded, tmp_path, 
     edit_yaml(work / "config" / "config.yaml", lambda c: c.update(variants=["pig", "no_offsets"]))
     monkeypatch.setenv(DEVICES_ENV, "g0")
     monkeypatch.setenv(LOCK_DIR_ENV, str(tmp_path / "locks"))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     (tmp_path / "locks").mkdir()
     held = _hold(lock_path(tmp_path / "locks", "g0"))
     log = work / "results" / "thuman4" / SUBJECT / "no_offsets" / "logs" / "fit.log"
-    argv = ["all_tables", "--cores", "2", "--snakefile", str(REPO / "Snakefile"), "--directory", str(work)]
-    run = multiprocessing.get_context("fork").Process(target=_own_group_child, args=(argv, tmp_path / "killed.out"))
-    run.start()
+    output = tmp_path / "killed.out"
+    argv = [sys.executable, "-m", "snakemake", "all_tables", "--cores", "2", "--snakefile", str(REPO / "Snakefile"),
+            "--directory", str(work)]
+    # A process group of its own, as a terminal's foreground job: Ctrl-C reaches Snakemake and its jobs. A fresh
+    # interpreter rather than a fork of this (threaded) test process.
+    with open(output, "w") as stream:
+        run = subprocess.Popen(argv, stdout=stream, stderr=subprocess.STDOUT, process_group=0)
     try:
-        deadline = time.monotonic() + 120
-        while not (log.exists() and "waiting for 1 free GPU slot" in log.read_text()):
-            assert time.monotonic() < deadline and run.is_alive(), (tmp_path / "killed.out").read_text()[-3000:]
-            time.sleep(0.1)
+        _wait_for(lambda: log.exists() and "waiting for 1 free GPU slot" in log.read_text(), run, output)
         os.killpg(run.pid, signal.SIGINT)  # Ctrl-C
-        run.join(timeout=60)
-        assert run.exitcode is not None, "Snakemake did not stop"
+        run.wait(timeout=SAFETY_S)
+        assert run.returncode != 0, output.read_text()[-3000:]
     finally:
-        if run.is_alive():
+        if run.poll() is None:
             os.killpg(run.pid, signal.SIGKILL)
-            run.join()
-        os.close(held)
+            run.wait()
+        os.close(held)  # only now is the slot free: a job that stopped before this stopped while it waited
     assert "fit_avatar: GPU slot(s) held" not in log.read_text()  # the job stopped while it waited
     assert not (work / "results" / "thuman4" / SUBJECT / "no_offsets" / "avatar.pt").exists()
     assert scheduled(work, "all_tables") == {"fit_avatar": 1, "render_split": 2, "evaluate": 4, "make_tables": 1,

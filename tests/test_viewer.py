@@ -211,6 +211,201 @@ def test_server_path_streams_the_renderers_image_of_the_clients_camera(trained_l
     assert np.abs(frame - moved).mean() > 4 * np.abs(frame - expected).mean(), "the check cannot tell cameras apart"
 
 
+def _status(port: int, host: str, origin: str | None = None, websocket: bool = True) -> int:
+    """The HTTP status the viewer on `port` answers a request with these Host and Origin headers: 101 when it opens
+    the websocket, 403 when it refuses; without `websocket`, the page's GET (200 when served)."""
+    import base64
+    import os
+
+    import viser
+
+    lines = ["GET / HTTP/1.1", f"Host: {host}"]
+    if websocket:
+        key = base64.b64encode(os.urandom(16)).decode()
+        lines += ["Upgrade: websocket", "Connection: Upgrade", f"Sec-WebSocket-Key: {key}", "Sec-WebSocket-Version: 13",
+                  f"Sec-WebSocket-Protocol: viser-v{viser.__version__}"]
+    if origin is not None:
+        lines.append(f"Origin: {origin}")
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as connection:
+        connection.sendall(("\r\n".join(lines) + "\r\n\r\n").encode())
+        head = b""
+        while b"\r\n" not in head:
+            chunk = connection.recv(256)
+            if not chunk:
+                break
+            head += chunk
+    return int(head.split(b" ")[1])
+
+
+@pytest.mark.skipif(not VISER, reason="viser is not installed (pip install -e '.[viewer]')")
+def test_the_viewer_opens_its_websocket_to_its_own_pages_only(trained_looking_avatar):
+    """Another site's page (cross-site websocket hijacking), a name of another site turned into 127.0.0.1 (DNS
+    rebinding) and another port are refused; the viewer's own page under a loopback name and scripts without an
+    Origin are admitted, and `allow_origins` admits a tunnel's origin, whatever Host the tunnel passes on."""
+    from pig.avatar.driver import AvatarDriver
+    from pig.viewer.app import Viewer
+    from pig.viewer.timeline import Timeline
+
+    timeline = Timeline(AvatarDriver(trained_looking_avatar))
+    viewer = Viewer(timeline.driver, timeline, path="browser", port=free_port())
+    try:
+        port = viewer.server.get_port()
+        own = [(f"127.0.0.1:{port}", None), (f"127.0.0.1:{port}", f"http://127.0.0.1:{port}"),
+               (f"localhost:{port}", f"http://localhost:{port}"), (f"[::1]:{port}", f"http://[::1]:{port}")]
+        foreign = [(f"127.0.0.1:{port}", "http://evil.example"), (f"127.0.0.1:{port}", f"http://localhost:{port}"),
+                   (f"127.0.0.1:{port}", "null"), (f"evil.example:{port}", f"http://evil.example:{port}"),
+                   (f"evil.example:{port}", None), (f"127.0.0.1:{port + 1}", f"http://127.0.0.1:{port + 1}"),
+                   ("127.0.0.1", None), (f"127.0.0.1:{port}", "https://tunnel.example")]
+        assert [_status(port, host, origin) for host, origin in own] == [101] * len(own)
+        assert [_status(port, host, origin) for host, origin in foreign] == [403] * len(foreign)
+        assert _status(port, f"127.0.0.1:{port}", websocket=False) == 200
+        assert _status(port, f"evil.example:{port}", websocket=False) == 403  # the page itself, by a rebound name
+    finally:
+        viewer.close()
+    viewer = Viewer(timeline.driver, timeline, path="browser", port=free_port(),
+                    allow_origins=("https://tunnel.example",))
+    try:
+        port = viewer.server.get_port()
+        assert _status(port, "tunnel.example", "https://tunnel.example") == 101
+        assert _status(port, f"127.0.0.1:{port}", "https://tunnel.example") == 101  # a tunnel that rewrites Host
+        assert _status(port, "tunnel.example", websocket=False) == 200
+        assert _status(port, f"127.0.0.1:{port}", "http://evil.example") == 403
+    finally:
+        viewer.close()
+
+
+@pytest.mark.skipif(not VISER, reason="viser is not installed (pip install -e '.[viewer]')")
+def test_view_stage_checks_allow_origin(tmp_path, capsys):
+    from pig.stages.view import main
+
+    with pytest.raises(SystemExit):
+        main(["--checkpoint", str(tmp_path / "avatar.pt"), "--allow-origin", "evil.example"])
+    assert "is not an origin: expected http(s)://HOST[:PORT]" in capsys.readouterr().err
+
+
+def _side_view(timeline):
+    """(eye, centre, up) of a camera beside the body, 1.6 body sizes away."""
+    centre, extent = timeline.bounds()
+    up = np.asarray(timeline.up, dtype=np.float64)
+    side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    return centre + 1.6 * extent * side / np.linalg.norm(side), centre, up
+
+
+def _received(client, first_wait_s: float = 20.0) -> np.ndarray | None:
+    """The last frame (RGB in [0, 1]) `client` receives before 2 s pass without one; None if none comes."""
+    import cv2
+
+    frame = None
+    while (data := client.next_frame(first_wait_s if frame is None else 2.0)) is not None:
+        frame = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1] / 255.0
+    return frame
+
+
+@pytest.mark.skipif(not VISER, reason="viser is not installed (pip install -e '.[viewer]')")
+def test_crafted_control_values_stop_no_client(trained_looking_avatar):
+    """A page sends an LOD outside the dropdown's options and a frame far past the timeline's end: the viewer keeps
+    the level and shows the last frame, and this client and a new one get frames of it, equal to the renderer's."""
+    from pig.avatar.animation import look_at
+    from pig.avatar.driver import AvatarDriver
+    from pig.render.api import render_gaussians
+    from pig.viewer.app import Viewer
+    from pig.viewer.client import ViserClient, camera_message, gui_message
+    from pig.viewer.timeline import Timeline
+
+    model = trained_looking_avatar
+    timeline = Timeline(AvatarDriver(model, frame_graph=True))
+    viewer = Viewer(timeline.driver, timeline, path="server", port=free_port(), jpeg_quality=100)
+    width, height, fov = 64, 48, math.radians(40.0)
+    eye, centre, up = _side_view(timeline)
+    focal = 0.5 * height / math.tan(fov / 2)
+    K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=torch.float32)
+    viewmat = torch.as_tensor(look_at(eye, centre, up), dtype=torch.float32)
+    last = timeline.length - 1
+    expected = render_gaussians(*[t.float() for t in timeline.gaussians(model.num_levels - 1, last)], viewmat[None],
+                                K[None], width, height, torch.zeros(3)).color[0].clamp(0, 1).numpy()
+    url = f"ws://127.0.0.1:{viewer.server.get_port()}"
+    try:
+        first = ViserClient(url)
+        try:
+            first.send(camera_message(eye, centre, up, fov, width, height))
+            assert _received(first) is not None
+            first.send(gui_message(viewer.lod, "99: crafted"))
+            first.send(gui_message(viewer.frame, 10**9))
+            first.send(camera_message(eye, centre, up, fov, width, height + 2))  # a new camera report: a new frame
+            assert _received(first, 10.0) is not None, "the client that sent the values gets no frame"
+            second = ViserClient(url)
+            try:
+                second.send(camera_message(eye, centre, up, fov, width, height))
+                frame = _received(second)
+            finally:
+                second.close()
+        finally:
+            first.close()
+        assert viewer.level == model.num_levels - 1 and viewer.frame_index == last
+    finally:
+        viewer.close()
+    assert frame is not None, "a client connecting afterwards gets no frame"
+    difference = np.abs(frame - expected).mean()
+    assert difference < 2 / 255, f"mean difference {difference * 255:.1f} / 255 from the last frame at the finest level"
+
+
+def test_an_error_making_one_frame_stops_no_later_frame():
+    """The viewer's worker thread (one per client on the server path): a frame that raises is reported, and the
+    next poke makes the next frame."""
+    import threading
+
+    from pig.viewer.app import _Latest
+
+    made, done = [], threading.Event()
+
+    def work():
+        made.append(len(made))
+        if len(made) == 1:
+            raise RuntimeError("a client's camera made this frame fail")
+        done.set()
+
+    worker = _Latest(work, "viewer-client-test")
+    try:
+        worker.poke()
+        while not made:  # the first frame started: a poke from now on asks for another
+            time.sleep(0.01)
+        worker.poke()
+        assert done.wait(10), "the worker thread ended with the failed frame"
+    finally:
+        worker.stop()
+    assert made == [0, 1]
+
+
+@pytest.mark.skipif(not VISER, reason="viser is not installed (pip install -e '.[viewer]')")
+def test_a_canvas_is_rendered_at_most_max_side_pixels_on_a_side(trained_looking_avatar):
+    """A page reporting a canvas twice the bound's width gets a frame of the bound's width and the canvas's aspect;
+    the 1,000,000 x 180 canvas that took 8.5 GB is rendered at 4096 x 1."""
+    from pig.avatar.driver import AvatarDriver
+    from pig.viewer.app import Viewer
+    from pig.viewer.client import ViserClient, camera_message
+    from pig.viewer.timeline import Timeline
+
+    bound = 4096
+    timeline = Timeline(AvatarDriver(trained_looking_avatar, frame_graph=True))
+    viewer = Viewer(timeline.driver, timeline, path="server", port=free_port())
+    eye, centre, up = _side_view(timeline)
+    try:
+        client = ViserClient(f"ws://127.0.0.1:{viewer.server.get_port()}")
+        try:
+            client.send(camera_message(eye, centre, up, math.radians(40.0), 2 * bound, 8))
+            frame = _received(client)
+        finally:
+            client.close()
+    finally:
+        viewer.close()
+    assert frame is not None and frame.shape == (4, bound, 3)
+    from pig.viewer.app import MAX_CANVAS_SIDE, frame_size
+
+    assert MAX_CANVAS_SIDE == bound  # as docs/viewer.md states
+    assert frame_size(1_000_000, 180) == (4096, 1) and frame_size(180, 10**9) == (1, 4096)
+    assert frame_size(5000, 5000, render_height=180) == (180, 180) and frame_size(640, 480) == (640, 480)
+
+
 def _footprint(means: np.ndarray, scales: np.ndarray, viewmat: np.ndarray, focal: float, width: int, height: int,
                sigmas: float) -> np.ndarray:
     """Pixels within `sigmas` times each splat's largest standard deviation of its centre's projection through a

@@ -1,9 +1,12 @@
 """`pig weights`: the weight table, lookups and checksums, and the checksummed fetch against a local HTTP server
-(good file, wrong checksum, 404, a transfer cut off), with the table's URLs and hashes monkeypatched."""
+(good file, wrong checksum, 404, a transfer cut off, a trickle, links planted at the temporary's name), with the
+table's URLs and hashes monkeypatched."""
 from __future__ import annotations
 
+import errno
 import hashlib
 import http.server
+import itertools
 import os
 import re
 import threading
@@ -11,11 +14,15 @@ from pathlib import Path
 
 import pytest
 
+import pig._io
 import pig.metrics.weight_files as wf
 from pig.metrics.weight_files import FetchError, WeightFile, check_and_fetch, fetch, status
 
 GOOD = os.urandom(3 * wf.CHUNK + 123)  # several blocks of the reader
 OTHER = os.urandom(5000)
+
+
+TRICKLE_PIECE = 64
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
@@ -34,6 +41,19 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.end_headers()
             for _ in range(64):
                 self.wfile.write(OTHER * 20)
+            self.close_connection = True
+        elif self.path == "/trickle.pth":  # the whole file, in small pieces, each flushed
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(GOOD)))
+            self.end_headers()
+            sent = 0
+            try:
+                while sent < len(GOOD):
+                    self.wfile.write(GOOD[sent : sent + TRICKLE_PIECE])
+                    self.wfile.flush()
+                    sent += TRICKLE_PIECE
+            except (BrokenPipeError, ConnectionResetError):  # the client gave up
+                pass
             self.close_connection = True
         elif self.path == "/cut.pth":  # promises the whole file, sends a third, then closes
             self.send_response(200)
@@ -110,6 +130,76 @@ def test_a_download_past_the_published_size_is_stopped(server, hub):
     with pytest.raises(FetchError, match=rf"sent more than the {len(GOOD):,} bytes of the published file; stopped"):
         fetch(entry(server, "/endless.pth"), hub, report=lambda line: None)
     assert leftovers(hub) == []
+
+
+def test_a_trickling_server_is_given_up_on(server, hub):
+    """Every block of the trickle takes 30 s by the injected clock: two blocks (at most 2 MiB) fall short of the
+    3 MB that a minute at the 50 kB/s floor brings, so the fetch gives up before the file's end, keeping nothing."""
+    ticks = itertools.count(0.0, 30.0)
+    with pytest.raises(FetchError, match="too slow"):
+        fetch(entry(server, "/trickle.pth"), hub, report=lambda line: None, clock=lambda: next(ticks))
+    assert leftovers(hub) == []
+    assert next(ticks) <= 4 * 30.0  # the clock was read at the start and after each of at most two blocks
+    # The bound is of the transfer's rate, not its length: the same trickle, a microsecond a block, is fetched.
+    steady = itertools.count(0.0, 1e-6)
+    assert fetch(entry(server, "/trickle.pth"), hub, report=lambda line: None, clock=lambda: next(steady)).read_bytes() == GOOD
+
+
+def test_links_planted_at_the_temporarys_names_are_not_written_through(server, hub, monkeypatch):
+    """A link at the download's would-be temporary name (the earlier fixed one, or the first random ones) to a file
+    outside the destination: that file is unchanged, and the fetched file is a file of its own."""
+    outside = hub.parent / "precious.bin"
+    hub.mkdir(parents=True)
+    outside.write_bytes(b"not to be touched")
+    planted = ["00000000", "00000001"]
+    tokens = itertools.chain(planted, (f"{i:08x}" for i in itertools.count(0xB0000000)))
+    monkeypatch.setattr(pig._io, "_token", lambda: next(tokens), raising=False)
+    names = [f".good.{os.getpid()}.tmp.pth"] + [f".good.{os.getpid()}.{t}.tmp.pth" for t in planted]
+    for name in names:
+        (hub / name).symlink_to(outside)
+    path = fetch(entry(server, "/good.pth"), hub, report=lambda line: None)
+    assert outside.read_bytes() == b"not to be touched"
+    assert not path.is_symlink() and not path.samefile(outside) and path.read_bytes() == GOOD
+    assert leftovers(hub) == sorted(names + ["good.pth"])
+
+
+def test_a_weight_of_the_wrong_size_is_bad_without_being_read(hub, monkeypatch):
+    content = b"published bytes"
+    table_entry = WeightFile("w", "w.pth", "http://unused/w.pth", hashlib.sha256(content).hexdigest(), len(content),
+                             "test", "test")
+    hashed = []
+    monkeypatch.setattr(wf, "file_sha256", lambda path: hashed.append(path) or hashlib.sha256(path.read_bytes()).hexdigest())
+    hub.mkdir(parents=True)
+    (hub / "w.pth").write_bytes(content + b"and a long tail")
+    assert status(table_entry).checksum == "bad" and hashed == []
+    (hub / "w.pth").write_bytes(content.upper())  # the published size: hashed
+    assert status(table_entry).checksum == "bad" and hashed == [hub / "w.pth"]
+    (hub / "w.pth").write_bytes(content)
+    assert status(table_entry).ok
+
+
+def test_a_destination_that_is_a_file_or_not_writable_is_named(server, hub, tmp_path, monkeypatch, capsys):
+    from pig.cli import main
+
+    monkeypatch.setattr(wf, "WEIGHT_FILES", (entry(server, "/good.pth"),))
+    dest = tmp_path / "a-file"
+    dest.write_bytes(b"mine")
+    assert main(["weights", "--fetch", "--dest", str(dest)]) == 1
+    out = capsys.readouterr().out
+    assert f"{dest}: is a file, not a folder" in out and out.count("not a folder") == 1
+    assert main(["weights", "--fetch", "--dest", str(dest / "below")]) == 1
+    assert f"lies under {dest}, which is a file" in capsys.readouterr().out
+    assert dest.read_bytes() == b"mine"
+
+    def refuse(path):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(wf, "create_temporary", refuse, raising=False)  # as a folder of another user does
+    hits = len(_Handler.hits)
+    with pytest.raises(FetchError) as refused:
+        fetch(entry(server, "/good.pth"), tmp_path / "theirs", report=lambda line: None)
+    assert "cannot write in its folder (Permission denied)" in str(refused.value)
+    assert len(_Handler.hits) == hits  # refused before any download
 
 
 def test_a_file_without_a_confirmed_checksum_is_refused_without_a_request(server, hub):

@@ -164,8 +164,8 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
     """
     from pig.avatar.checkpoint import load_avatar
     from pig.avatar.driver import AvatarDriver
-    from pig.avatar.export import capture_motion
-    from pig.body.motion import Motion, capture_frame, read_motion
+    from pig.avatar.export import capture_motion, parse_frames
+    from pig.body.motion import MAX_FRAMES, Motion, MotionError, capture_frame, check_fps, read_motion
     from pig.config import resolve_device
     from pig.data.exr import write_exr
     from pig.progress import progress_bar
@@ -175,6 +175,9 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
 
     rasterizer = rasterizer or RasterizerConfig()
     orbit = orbit or Orbit()
+    selection = parse_frames(frames)
+    if fps is not None:
+        check_fps(fps, "--fps", ValueError)
     inputs = tuple(p for p in (checkpoint, motion_path, capture_dir) if p is not None)
     output = claim_dir(output, "animate", inputs, overwrite)
     device = resolve_device(device, "--device")
@@ -189,13 +192,18 @@ def animate(checkpoint: Path, output: Path, motion_path: Path | None = None, cam
         seconds = static_seconds if static_seconds is not None else orbit.period_s
         rate = fps or 30.0
         count = max(1, int(round(seconds * rate)))
+        if count > MAX_FRAMES:
+            raise MotionError(f"a still pose of {seconds:g} s at {rate:g} fps is {count:,} frames, more than the "
+                              f"{MAX_FRAMES:,} an animation may have; shorten --seconds or lower --fps")
         pose = model.pose_init[:1].cpu().double().numpy().repeat(count, axis=0)
         motion = Motion(full_pose=pose, transl=model.transl[:1].cpu().double().numpy().repeat(count, axis=0), fps=rate,
                         betas=None, source=f"{checkpoint} (training timestep 0, still)")
     else:
-        motion = read_motion(motion_path, hands_mean=model.body_model.hands_mean.cpu().numpy())  # DNA-style fits
-        motion = capture_motion(motion, model.body_model, driver.refined()[0], (target_up, ground, centre), frames,
+        motion = read_motion(motion_path, hands_mean=model.body_model.hands_mean.cpu().numpy(),  # DNA-style fits
+                             frames=selection)
+        motion = capture_motion(motion, model.body_model, driver.refined()[0], (target_up, ground, centre), None,
                                 fps, up)[0]
+        check_fps(motion.fps, f"{motion.source}: with --frames {frames} the video would play at", ValueError)
 
     count = len(motion.full_pose)
     if camera is not None:

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pig.body.motion import check_translations
 from pig.field.precondition import bake_preconditioning
 from pig._io import atomic_path, write_json
 from pig._outputs import build_dir, claim_dir
@@ -153,21 +154,29 @@ def write_splats(path: str | Path, gaussians, fmt: str, up, what: str = "splats"
         tmp.write_bytes(data)
 
 
-def frame_selection(spec: str | None, count: int, source: str) -> np.ndarray:
-    """Motion frame indices chosen by `spec` ("START:STOP[:STEP]", STOP excluded; None: all `count` frames) of
-    the motion `source`, which has `count` frames."""
+def parse_frames(spec: str | None) -> slice | None:
+    """The slice of "START:STOP[:STEP]" (STOP excluded; None: None, every frame); ValueError on any other form."""
     if spec is None:
-        return np.arange(count)
+        return None
     match = re.fullmatch(r"\s*(\d+):(\d+)(?::(\d+))?\s*", spec)
     if match is None:
         raise ValueError(f"--frames {spec!r}: expected {FRAMES_FORM}")
     start, stop, step = int(match[1]), int(match[2]), int(match[3] or 1)
     if start >= stop or step < 1:
         raise ValueError(f"--frames {spec!r} selects no frame; expected {FRAMES_FORM}")
-    if stop > count:
+    return slice(start, stop, step)
+
+
+def frame_selection(spec: str | None, count: int, source: str) -> np.ndarray:
+    """Motion frame indices chosen by `spec` ("START:STOP[:STEP]", STOP excluded; None: all `count` frames) of
+    the motion `source`, which has `count` frames."""
+    frames = parse_frames(spec)
+    if frames is None:
+        return np.arange(count)
+    if frames.stop > count:
         raise ValueError(f"--frames {spec!r}: {source} has {count} frames (0..{count - 1}), so STOP may be at most "
                          f"{count}")
-    return np.arange(start, stop, step)
+    return np.arange(frames.start, frames.stop, frames.step)
 
 
 def _checked_motion(poses, transl, source: str) -> tuple[np.ndarray, np.ndarray]:
@@ -183,6 +192,7 @@ def _checked_motion(poses, transl, source: str) -> tuple[np.ndarray, np.ndarray]
         if bad.any():
             raise ValueError(f"{source}: {name} holds NaN or inf in {int(bad.sum())} frames, the first is frame "
                              f"{int(np.argmax(bad))}")
+    check_translations(transl, source)
     return poses.astype(np.float64), transl.astype(np.float64)
 
 
@@ -200,15 +210,18 @@ def posed_gaussians(model, timestep: int, lod: int, full_pose, transl) -> tuple[
 def capture_motion(motion, body_model, betas, capture: tuple, frames: str | None = None, fps: float | None = None,
                    up: str | None = None):
     """(clip, chosen): the Motion `motion` as the animate and export stages drive an avatar with it, and the indices
-    of its frames that the clip's rows are. The frames `frames` selects ("START:STOP[:STEP]", default all),
+    of its source's frames that the clip's rows are (`Motion.source_frames`: a clip read with only some frames keeps
+    the file's indices). The frames `frames` selects ("START:STOP[:STEP]", default all),
     resampled to `fps` (default: the clip's own rate; else `chosen` is None), brought into the capture's frame by
     pig.body.motion.align_motion with the avatar's `body_model` and refined shape `betas`; `capture` is
     pig.body.motion.capture_frame's (up, ground, centre) of the avatar, `up` (e.g. "+y") overrides its axis."""
     from pig.body.motion import align_motion
 
-    chosen = frame_selection(frames, motion.num_frames, motion.source)
-    step = int(chosen[1] - chosen[0]) if len(chosen) > 1 else 1
-    motion = motion.select(slice(int(chosen[0]), int(chosen[-1]) + 1, step))
+    if frames is not None:
+        chosen = frame_selection(frames, motion.num_frames, motion.source)
+        step = int(chosen[1] - chosen[0]) if len(chosen) > 1 else 1
+        motion = motion.select(slice(int(chosen[0]), int(chosen[-1]) + 1, step))
+    chosen = motion.source_frames
     if fps is not None:
         motion, chosen = motion.resample(fps), None
     return align_motion(motion, body_model, betas, *capture, up), chosen
@@ -242,8 +255,11 @@ def export_avatar(checkpoint: str | Path, output: str | Path, lod: int | None = 
     output = claim_dir(output, STAGE, inputs, overwrite)
     model = load_avatar(checkpoint, device)
     motion = None
-    if poses is None and motion_source is not None:
-        motion = read_motion(motion_source, hands_mean=model.body_model.hands_mean.cpu().numpy())
+    selection = frames
+    if poses is None and motion_source is not None:  # only the frames asked for are read
+        motion = read_motion(motion_source, hands_mean=model.body_model.hands_mean.cpu().numpy(),
+                             frames=parse_frames(frames))
+        selection = None
     elif poses is not None:
         motion = Motion(*_checked_motion(poses, transl, source), fps=30.0, source=source)  # fps unused: no resampling
     if lod is None:
@@ -260,8 +276,8 @@ def export_avatar(checkpoint: str | Path, output: str | Path, lod: int | None = 
     canonical_pose = np.zeros((55, 3))
     canonical_pose[0] = matrix_to_axis_angle(torch.from_numpy(rotation_between([0.0, 1.0, 0.0], canonical_up))).numpy()
     if motion is not None:
-        motion, chosen = capture_motion(motion, model.body_model, AvatarDriver(model).refined()[0], capture, frames,
-                                        up=up)
+        motion, chosen = capture_motion(motion, model.body_model, AvatarDriver(model).refined()[0], capture,
+                                        selection, up=up)
     bake_preconditioning(model)  # the anchors' value once, not a solve per frame
     suffix = FORMATS[fmt]
     record = {"format": fmt, "lod": lod, "splats": model.level_sizes[lod], "checkpoint": str(checkpoint),

@@ -19,6 +19,9 @@ from .skeleton import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, SMPLX_JOINT_NAMES, SMPL
 
 REQUIRED_KEYS = ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
 HAND_MEAN_KEYS = ("hands_meanl", "hands_meanr")  # optional; zero when absent
+# Optional (k <= 45 rows of 45): the hand poses' principal directions, through which fits stored as hand PCA
+# coefficients (EasyMocap's, pig.body.easymocap) become axis-angle; a real SMPL-X file holds 45 each.
+HAND_COMPONENT_KEYS = ("hands_componentsl", "hands_componentsr")
 
 
 class BodyModelError(ValueError):
@@ -110,7 +113,26 @@ class BodyModel(nn.Module):
             if key in arrays:
                 hands_mean[part] = np.asarray(arrays[key], dtype=np.float64).reshape(15, 3)
         self.register_buffer("hands_mean", torch.from_numpy(hands_mean))
+        components = [self._hand_components(arrays, key, source) for key in HAND_COMPONENT_KEYS]
+        self.has_hand_components = components[0] is not None and components[1] is not None
+        if components[0] is None or components[1] is None:
+            components = [np.zeros((0, 45)), np.zeros((0, 45))]
+        if components[0].shape != components[1].shape:
+            raise BodyModelError(f"{source}: 'hands_componentsl' has shape {components[0].shape} but "
+                                 f"'hands_componentsr' {components[1].shape}; expected one shape (k, 45)")
+        # (2, k, 45): left then right; row i is the i-th principal direction of the 15 x 3 hand pose.
+        self.register_buffer("hands_components", torch.from_numpy(np.stack(components)))
         self.to(dtype)
+
+    @staticmethod
+    def _hand_components(arrays: dict, key: str, source: str) -> np.ndarray | None:
+        if key not in arrays:
+            return None
+        value = np.asarray(arrays[key], dtype=np.float64)
+        if value.ndim != 2 or value.shape[1] != 45 or not 1 <= value.shape[0] <= 45 or not np.all(np.isfinite(value)):
+            raise BodyModelError(f"{source}: '{key}' has shape {value.shape}, expected finite (k, 45) with k <= 45 "
+                                 "(hand pose principal components)")
+        return value
 
     @classmethod
     def from_file(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> "BodyModel":
@@ -118,7 +140,7 @@ class BodyModel(nn.Module):
         if not path.exists():  # a FIFO or device is refused by read_npz, named as such
             raise BodyModelError(f"body model file {path} does not exist (expected an SMPL-X npz such as SMPLX_NEUTRAL.npz)")
         arrays = read_npz(path, BodyModelError, f"an SMPL-X model with {list(REQUIRED_KEYS)}",
-                          keys=REQUIRED_KEYS + HAND_MEAN_KEYS, pickled=("J_regressor",))
+                          keys=REQUIRED_KEYS + HAND_MEAN_KEYS + HAND_COMPONENT_KEYS, pickled=("J_regressor",))
         return cls(arrays, source=str(path), dtype=dtype)
 
     @property

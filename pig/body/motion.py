@@ -20,7 +20,7 @@ import torch
 from pig._io import atomic_path
 
 from .model import LEFT_HAND, NUM_JOINTS, RIGHT_HAND, BodyModel
-from .npz import read_npz
+from .npz import npz_shapes, read_npz_rows
 from .params import ParamsError, from_dna, from_thuman
 from .rotation import (axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_quaternion, quaternion_to_axis_angle,
                        quaternion_to_matrix)
@@ -40,6 +40,16 @@ THUMAN4_LAYOUT = ("THuman4 smpl_params.npz: `global_orient` (N, 3), `body_pose` 
 DNA_LAYOUT = "DNA-style npz: `fullpose` (N, 55, 3) axis-angle, `transl` (N, 3), optional `betas`"
 _KEYS = ("poses", "trans", "mocap_framerate", "mocap_frame_rate", "betas", "global_orient", "body_pose", "jaw_pose",
          "left_hand_pose", "right_hand_pose", "expression", "transl", "fullpose")
+# The members with a row per frame, read only at the frames asked for; `betas` (one shape) and the rate are not.
+_FRAME_KEYS = ("poses", "trans", "global_orient", "body_pose", "jaw_pose", "left_hand_pose", "right_hand_pose",
+               "expression", "transl", "fullpose")
+_LAYOUT_KEYS = ("poses", "global_orient", "fullpose")  # the member that tells each layout, with a row per frame
+# Bounds on what a motion may ask for (docs/animation.md). Each frame is posed and rendered, so MAX_FRAMES, checked
+# after --frames and --fps and before anything is allocated, bounds memory and time: an hour at 30 fps.
+MAX_FRAMES = 108_000
+FPS_RANGE = (1.0, 1000.0)  # a clip's own rate and any rate asked for: mocap runs at 30-250 fps, VP9 below 0.1 fails
+MAX_TRANSLATION_M = 1000.0  # a frame's root translation from the clip's origin: no capture volume is larger
+MAX_ABS_BETA = 10.0  # SMPL-X shape coefficients are in standard deviations of the body-shape space
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
@@ -56,28 +66,38 @@ class Motion:
     fps: float
     betas: np.ndarray | None = None  # informational: the avatar keeps its own refined shape
     source: str = "<arrays>"
+    frames: np.ndarray | None = None  # each row's frame index in the source (None: 0, 1, ...)
 
     @property
     def num_frames(self) -> int:
         return self.full_pose.shape[0]
+
+    @property
+    def source_frames(self) -> np.ndarray:
+        """Each row's frame index in the file (or arrays) the clip was read from."""
+        return np.arange(self.num_frames) if self.frames is None else self.frames
 
     def select(self, frames: slice) -> "Motion":
         """The frames of a slice; a step s divides the frame rate by s."""
         if not isinstance(frames, slice):
             raise TypeError(f"Motion.select takes a slice, got {type(frames).__name__}")
         step = frames.step or 1
-        picked = replace(self, full_pose=self.full_pose[frames], transl=self.transl[frames], fps=self.fps / abs(step))
+        picked = replace(self, full_pose=self.full_pose[frames], transl=self.transl[frames], fps=self.fps / abs(step),
+                         frames=self.source_frames[frames])
         if picked.num_frames == 0:
             raise MotionError(f"{self.source}: frames {frames} select none of the {self.num_frames} frames")
         return picked
 
     def resample(self, fps: float) -> "Motion":
         """The clip at `fps`: frame k at time k / fps over the clip's span; joint rotations by slerp between the
-        two neighbouring frames (smooth in video, unlike nearest-frame), translations linearly."""
-        if not (math.isfinite(fps) and fps > 0):
-            raise ValueError(f"resample: fps must be positive and finite, got {fps}")
+        two neighbouring frames (smooth in video, unlike nearest-frame), translations linearly. MotionError,
+        before anything is allocated, when that is more than MAX_FRAMES frames."""
+        check_fps(fps, f"{self.source}: resampling to", MotionError)
         span = (self.num_frames - 1) / self.fps
         count = int(math.floor(span * fps + 1e-9)) + 1
+        if count > MAX_FRAMES:
+            raise MotionError(f"{self.source}: {span:g} s at {fps:g} fps is {count:,} frames, more than the "
+                              f"{MAX_FRAMES:,} a motion may drive; select fewer frames or a lower rate")
         position = np.arange(count) * (self.fps / fps)  # fractional source frame
         lower = np.minimum(np.floor(position).astype(np.int64), self.num_frames - 1)
         upper = np.minimum(lower + 1, self.num_frames - 1)
@@ -85,7 +105,41 @@ class Motion:
         quats = matrix_to_quaternion(axis_angle_to_matrix(torch.from_numpy(self.full_pose))).numpy()
         pose = quaternion_to_axis_angle(torch.from_numpy(slerp(quats[lower], quats[upper], weight[:, None]))).numpy()
         transl = (1 - weight[:, None]) * self.transl[lower] + weight[:, None] * self.transl[upper]
-        return replace(self, full_pose=pose, transl=transl, fps=float(fps))
+        return replace(self, full_pose=pose, transl=transl, fps=float(fps), frames=None)
+
+
+def check_fps(fps: float, what: str, error: type[Exception] = MotionError) -> float:
+    """`fps` if it lies in FPS_RANGE, else `error` naming `what` (the file and the key, or the option)."""
+    low, high = FPS_RANGE
+    if not (math.isfinite(fps) and low <= fps <= high):
+        raise error(f"{what} {fps:g} fps; expected a frame rate from {low:g} to {high:g} fps")
+    return float(fps)
+
+
+def check_translations(transl: np.ndarray, source: str, frames=None) -> None:
+    """MotionError naming `source`, the first bad frame and its value when a translation (N, 3) is not finite or lies
+    more than MAX_TRANSLATION_M from the origin (no capture could hold it: placed in one, such a clip either
+    collapses onto a few points or leaves the view). `frames` (N,): each row's frame index in `source`."""
+    distance = np.linalg.norm(np.asarray(transl, dtype=np.float64), axis=1)
+    bad = ~(distance <= MAX_TRANSLATION_M)  # NaN compares false
+    if bad.any():
+        row = int(np.argmax(bad))
+        frame = row if frames is None else int(frames[row])
+        raise MotionError(f"{source}: the translation of frame {frame} is {np.asarray(transl)[row].tolist()}, "
+                          f"expected finite and within {MAX_TRANSLATION_M:g} m of the clip's origin")
+
+
+def check_betas(betas: np.ndarray | None, source: str) -> None:
+    """MotionError naming `source` and the first coefficient when a shape coefficient is not finite or exceeds
+    MAX_ABS_BETA standard deviations in size."""
+    if betas is None:
+        return
+    betas = np.asarray(betas, dtype=np.float64).reshape(-1)
+    bad = ~(np.abs(betas) <= MAX_ABS_BETA)
+    if bad.any():
+        index = int(np.argmax(bad))
+        raise MotionError(f"{source}: shape coefficient betas[{index}] is {betas[index]:g}, expected finite and "
+                          f"within +-{MAX_ABS_BETA:g} (standard deviations of the body-shape space)")
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -105,36 +159,63 @@ def slerp(q0: np.ndarray, q1: np.ndarray, weight: np.ndarray) -> np.ndarray:
 
 # -- reading ---------------------------------------------------------------------------------------
 
-def read_motion(path: str | Path, fps: float | None = None, hands_mean: np.ndarray | None = None) -> Motion:
+def read_motion(path: str | Path, fps: float | None = None, hands_mean: np.ndarray | None = None,
+                frames: slice | None = None) -> Motion:
     """Read a motion clip: AMASS (`poses` SMPL-H or SMPL-X), THuman4 `smpl_params.npz`, or DNA-style `fullpose`.
 
     fps overrides the file's rate (AMASS `mocap_framerate`) or the default (THuman4 30, DNA 15).
     hands_mean (55, 3), e.g. `body_model.hands_mean`, is needed for the DNA layout only, whose fits use
-    `flat_hand_mean=False`; it is added to the hand joints. Never unpickles; MotionError on bad input.
+    `flat_hand_mean=False`; it is added to the hand joints. frames (a slice of positive step, STOP at most the
+    file's frame count) reads those frames alone (`Motion.frames` holds their indices), checked against MAX_FRAMES
+    from the file's headers before anything is read. Never unpickles; MotionError on bad input, and on a rate
+    outside FPS_RANGE, translations beyond MAX_TRANSLATION_M or shape coefficients beyond MAX_ABS_BETA.
     """
     path = Path(path)
     expected = f"one of: {AMASS_LAYOUT}; {THUMAN4_LAYOUT}; {DNA_LAYOUT}"
     if not path.is_file():
         raise MotionError(f"{path}: motion file not found; expected {expected}")
-    arrays = read_npz(path, MotionError, expected, keys=_KEYS)
-    if "poses" in arrays:
+    shapes = npz_shapes(path, MotionError, expected, _LAYOUT_KEYS)
+    frames_key = next((key for key in _LAYOUT_KEYS if key in shapes), None)
+    if frames_key is None:
+        with zipfile.ZipFile(path) as archive:  # npz_shapes checked it; list every member, not only the known ones
+            keys = sorted(name[:-4] for name in archive.namelist() if name.endswith(".npy"))
+        raise MotionError(f"{path}: no known motion layout (keys {keys}); expected {expected}")
+    count = shapes[frames_key][0] if shapes[frames_key] else 0
+    rows = _frame_rows(frames, count, path)
+    if len(rows) > MAX_FRAMES:
+        raise MotionError(f"{path}: {len(rows):,} frames selected (of {count:,}), more than the {MAX_FRAMES:,} a motion "
+                          "may drive; select a part (frames START:STOP[:STEP])")
+    arrays = read_npz_rows(path, MotionError, expected, _KEYS, _FRAME_KEYS, count, rows)
+    transl = arrays.get("trans" if frames_key == "poses" else "transl")
+    if transl is not None and transl.ndim == 2 and transl.shape[1] == 3 and transl.dtype.kind in "biuf":
+        check_translations(transl, str(path), rows)  # first: it names the frame; the layouts check the rest
+    if frames_key == "poses":
         motion = _from_amass(arrays, path)
-    elif "global_orient" in arrays:
+    elif frames_key == "global_orient":
         motion = _from_params(arrays, path, from_thuman, THUMAN4_LAYOUT, THUMAN4_FPS, None)
-    elif "fullpose" in arrays:
+    else:
         if hands_mean is None:
             raise MotionError(f"{path}: DNA-style `fullpose` uses flat_hand_mean=False; pass hands_mean= "
                               "(the body model's hands_mean) so it can be added to the hand joints")
         motion = _from_params(arrays, path, from_dna, DNA_LAYOUT, DNA_FPS, np.asarray(hands_mean, dtype=np.float64))
-    else:
-        with zipfile.ZipFile(path) as archive:  # read_npz checked it; list every member, not only the known ones
-            keys = sorted(name[:-4] for name in archive.namelist() if name.endswith(".npy"))
-        raise MotionError(f"{path}: no known motion layout (keys {keys}); expected {expected}")
-    if fps is not None:
-        if not (math.isfinite(fps) and fps > 0):
-            raise MotionError(f"{path}: fps must be positive and finite, got {fps}")
-        motion.fps = float(fps)
+    motion.frames = np.asarray(rows, dtype=np.int64)
+    rate = motion.fps if fps is None else check_fps(fps, f"{path}: the frame rate asked for is")
+    motion.fps = rate / rows.step  # every STEP-th frame: the file's rate over STEP
+    check_betas(motion.betas, str(path))
     return motion
+
+
+def _frame_rows(frames: slice | None, count: int, path: Path) -> range:
+    """The frame indices `frames` selects of a file's `count`; MotionError if it reaches past them."""
+    if frames is None:
+        return range(count)
+    start, stop, step = frames.start or 0, frames.stop, frames.step or 1
+    if not (0 <= start < stop and step >= 1):
+        raise ValueError(f"read_motion: frames must be a slice with 0 <= START < STOP and STEP >= 1, got {frames}")
+    if stop > count:
+        shown = f"{start}:{stop}" + (f":{step}" if step > 1 else "")
+        raise MotionError(f"frames {shown}: {path} has {count} frames (0..{count - 1}), so STOP may be at most {count}")
+    return range(start, stop, step)
 
 
 def _finite(arrays, key: str, path: Path, layout: str) -> np.ndarray:
@@ -165,8 +246,9 @@ def _from_amass(arrays, path: Path) -> Motion:
         raise MotionError(f"{path}: `trans` has shape {trans.shape}; expected ({n}, 3) to match `poses` "
                           f"({AMASS_LAYOUT})")
     rate = _finite(arrays, rate_key, path, AMASS_LAYOUT)
-    if rate.size != 1 or not rate.item() > 0:
-        raise MotionError(f"{path}: `{rate_key}` is {rate.tolist()}; expected one positive frame rate ({AMASS_LAYOUT})")
+    if rate.size != 1:
+        raise MotionError(f"{path}: `{rate_key}` is {rate.tolist()}; expected one frame rate ({AMASS_LAYOUT})")
+    check_fps(rate.item(), f"{path}: `{rate_key}` is")
     full_pose = np.zeros((n, SMPLX_JOINTS, 3))
     if poses.shape[1] == SMPLH_JOINTS * 3:
         full_pose[:, SMPLH_TO_SMPLX] = poses.reshape(n, SMPLH_JOINTS, 3)

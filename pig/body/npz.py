@@ -125,3 +125,110 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
         except Exception as err:  # any failure of the restricted unpickler means the member is not plain data
             raise error(f"{path}: '{key}' holds pickled objects other than numpy arrays or scipy sparse matrices "
                         f"({err}); they are not loaded because loading them could run code") from None
+
+
+def _zip_archive(handle, path: Path, error: type[Exception], expected: str) -> zipfile.ZipFile:
+    """The open file `handle` of `path` as a zip archive, after its first bytes showed it is one (`error` otherwise)."""
+    head = handle.read(4)
+    if head not in ZIP_MAGIC:
+        shown = f"starts with {head!r}" if head else "is empty"
+        raise error(f"{path}: not a valid npz archive (the file {shown}); expected {expected}, a zip of .npy arrays as "
+                    "numpy.savez writes")
+    handle.seek(0)
+    return zipfile.ZipFile(handle)
+
+
+def _unreadable(path: Path, err: Exception, error: type[Exception], expected: str) -> Exception:
+    """`error` naming `path` for an exception met while opening or reading an npz archive."""
+    if isinstance(err, FileNotFoundError):
+        return error(f"{path}: file not found; expected {expected}")
+    if isinstance(err, (zipfile.BadZipFile, zlib.error, EOFError)):
+        return error(f"{path}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}")
+    return error(f"{path}: cannot read the file ({getattr(err, 'strerror', None) or err}); expected {expected}")
+
+
+_ARCHIVE_ERRORS = (OSError, zipfile.BadZipFile, zlib.error, EOFError)
+
+
+def _header(member, key: str, path, error: type[Exception]) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """(shape, Fortran order, dtype) from the .npy header at the start of `member`, which it reads past."""
+    try:
+        version = np.lib.format.read_magic(member)
+        if version not in _HEADER_READERS:
+            raise ValueError(f"unsupported .npy format version {version}")
+        shape, fortran, dtype = _HEADER_READERS[version](member)
+    except ValueError as err:
+        raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
+    return tuple(shape), fortran, dtype
+
+
+def npz_shapes(path: str | Path, error: type[Exception], expected: str, keys) -> dict[str, tuple[int, ...]]:
+    """The declared shapes of the members `keys` (those present) of the npz at `path`, from their .npy headers
+    alone; `error` as `read_npz`'s."""
+    path = Path(path)
+    try:
+        require_regular_file(path, error, expected)
+        with path.open("rb") as handle, _zip_archive(handle, path, error, expected) as archive:
+            members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
+            shapes = {}
+            for key in (k for k in keys if k in members):
+                with archive.open(members[key]) as member:
+                    shapes[key] = _header(member, key, path, error)[0]
+            return shapes
+    except _ARCHIVE_ERRORS as err:
+        raise _unreadable(path, err, error, expected) from None
+
+
+def read_npz_rows(path: str | Path, error: type[Exception], expected: str, keys, row_keys, length: int,
+                  rows: range, max_bytes: int = MAX_MEMBER_BYTES) -> dict[str, np.ndarray]:
+    """As `read_npz` (plain arrays only), but a member of `row_keys` whose first dimension is `length` is read at
+    `rows` alone (a range of positive step within 0..length-1), streamed a block at a time: its selected rows, not
+    the whole member, are what `max_bytes` bounds, and rows past the last selected one are never decompressed."""
+    path = Path(path)
+    try:
+        require_regular_file(path, error, expected)
+        with path.open("rb") as handle, _zip_archive(handle, path, error, expected) as archive:
+            members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
+            return {key: _member_or_rows(archive, members[key], key in row_keys, length, rows, path, error, max_bytes)
+                    for key in keys if key in members}
+    except _ARCHIVE_ERRORS as err:
+        raise _unreadable(path, err, error, expected) from None
+
+
+ROW_BLOCK_BYTES = 1 << 24  # rows streamed per read
+
+
+def _member_or_rows(archive: zipfile.ZipFile, name: str, by_rows: bool, length: int, rows: range, path,
+                    error: type[Exception], max_bytes: int) -> np.ndarray:
+    key = name[:-4]
+    with archive.open(name) as member:
+        shape, fortran, dtype = _header(member, key, path, error)
+        if dtype.hasobject:
+            raise error(f"{path}: '{key}' holds pickled Python objects, which are not loaded (loading them could "
+                        "run code); expected a numeric array")
+        if not (by_rows and len(shape) >= 1 and shape[0] == length):
+            return _member(archive, name, False, path, error, max_bytes)
+        if fortran and len(shape) > 1:  # a row's values lie apart in the file: the whole member, bounded, then rows
+            return np.ascontiguousarray(_member(archive, name, False, path, error, max_bytes)[rows.start:rows.stop:rows.step])
+        header_bytes = member.tell()
+        _check_declared(archive.getinfo(name), header_bytes, shape, dtype, path, error, math.inf)  # sizes agree
+        tail = shape[1:]
+        row_bytes = math.prod(tail) * dtype.itemsize
+        if len(rows) * row_bytes > max_bytes:
+            raise error(f"{path}: member '{key}' at {len(rows):,} rows of {row_bytes:,} bytes is more than the "
+                        f"{max_bytes:,} bytes read from one member; not read")
+        out = np.empty((len(rows), *tail), dtype=dtype)
+        if not rows or row_bytes == 0:
+            return out
+        block = max(1, ROW_BLOCK_BYTES // row_bytes)
+        member.seek(header_bytes + rows.start * row_bytes)
+        filled, index = 0, rows.start
+        while index <= rows[-1]:
+            count = min(block, rows[-1] + 1 - index)
+            data = member.read(count * row_bytes)
+            if len(data) != count * row_bytes:
+                raise error(f"{path}: member '{key}' ends before row {index + len(data) // row_bytes}; truncated")
+            picked = np.frombuffer(data, dtype=dtype).reshape(count, *tail)[(rows.start - index) % rows.step::rows.step]
+            out[filled:filled + len(picked)] = picked
+            filled, index = filled + len(picked), index + count
+        return out

@@ -346,7 +346,18 @@ def make_standin_arrays(seed: int = 0, spacing: float = GRID_SPACING) -> dict[st
         "kintree_table": np.stack([np.array(SMPLX_PARENTS), np.arange(NUM_JOINTS)]).astype(np.int64),
         "hands_meanl": np.zeros(45),
         "hands_meanr": np.zeros(45),
+        **_hand_components(seed),
     }
+
+
+def _hand_components(seed: int) -> dict[str, np.ndarray]:
+    """Orthonormal 45 x 45 hand pose directions with falling scales, as SMPL-X's `hands_components{l,r}` (PCA
+    rows): enough for a fit stored as hand PCA coefficients (EasyMocap's) to mean one hand pose. Their own
+    generator leaves the other arrays as they were before the stand-in had components."""
+    rng = np.random.default_rng([seed, 45])
+    scales = np.linspace(1.0, 0.2, 45)[:, None]
+    return {key: scales * np.linalg.qr(rng.normal(size=(45, 45)))[0].T
+            for key in ("hands_componentsl", "hands_componentsr")}
 
 
 def write_standin(path: str | Path, seed: int = 0) -> Path:

@@ -171,8 +171,9 @@ class Thuman4Capture:
         return pairs
 
 
-def read_calibration(path: Path) -> dict[str, RawCamera]:
-    """calibration.json -> cameras in file order; K and R flat (9) or 3x3, T of 3, imgSize [W, H]."""
+def read_calibration(path: Path, dist_optional: bool = False) -> dict[str, RawCamera]:
+    """calibration.json -> cameras in file order; K and R flat (9) or 3x3, T of 3, imgSize [W, H]; `distCoeff`
+    zeros where absent if `dist_optional` (AvatarReX's calibration_full.json)."""
     try:
         require_regular_file(path, CaptureError, "a calibration JSON file")
         data = json.loads(path.read_text())
@@ -185,7 +186,7 @@ def read_calibration(path: Path) -> dict[str, RawCamera]:
     # Checked before any camera is used: each id names the folders images/<id>/ and masks/<id>/ read here and
     # written by the preprocess stage.
     names = [safe_name(name, "camera id", str(path), CaptureError) for name in data]
-    return {name: _camera(name, data[name], path) for name in names}
+    return {name: camera_entry(name, data[name], path, dist_optional) for name in names}
 
 
 def _numbers(value) -> np.ndarray | None:
@@ -215,13 +216,16 @@ def _matrix(entry: dict, key: str, size: int, where: str) -> np.ndarray:
     return value.reshape(-1)
 
 
-def _camera(name: str, entry, path: Path) -> RawCamera:
+def camera_entry(name: str, entry, path: Path, dist_optional: bool = False) -> RawCamera:
+    """One camera of a calibration file (`path`, for messages) from THuman4's keys, checked."""
     where = f"{path}: camera '{name}'"
     if not isinstance(entry, dict):
         raise CaptureError(f"{where}: expected a mapping with K, R, T, imgSize, distCoeff")
     K = _matrix(entry, "K", 9, where).reshape(3, 3)
     R = _matrix(entry, "R", 9, where).reshape(3, 3)
     T = _matrix(entry, "T", 3, where)
+    if "distCoeff" not in entry and dist_optional:
+        entry = {**entry, "distCoeff": [0.0] * 5}
     if "distCoeff" not in entry:
         raise CaptureError(f"{where}: missing key 'distCoeff' (OpenCV distortion, length 5); found {sorted(entry)}")
     dist = _numbers(entry["distCoeff"])

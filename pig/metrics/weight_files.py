@@ -10,6 +10,7 @@ import hashlib
 import http.client
 import importlib.util
 import os
+import time
 import urllib.error
 import urllib.request
 from collections.abc import Callable, Iterable
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pig.progress import progress_bar
-from pig._io import _temporary, file_sha256
+from pig._io import _still_ours, create_temporary, file_sha256
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,10 @@ WEIGHT_FILES = (
 LPIPS_FILES = {"alex": ("alexnet", "lpips-alex"), "vgg": ("vgg16", "lpips-vgg")}
 FETCH_COMMAND = "pig weights --fetch"
 CHUNK = 1 << 20
+# A download slower than this over a whole window is given up: a server or proxy that trickles would otherwise hold
+# the fetch for hours (one byte a second: years for VGG16). At the floor VGG16's 553 MB takes about 3 hours.
+MIN_BYTES_PER_S = 50_000
+RATE_WINDOW_S = 60.0
 
 
 class FetchError(OSError):
@@ -132,65 +137,113 @@ class Status:
 
 def status(entry: WeightFile, dest: Path | None = None, configured: str | Path | None = None) -> Status:
     """Whether `entry` is found where the metrics look for it (`candidates`), and whether its bytes hash to the
-    published SHA-256 (reads the whole file: ~1 s for VGG16's 553 MB)."""
+    published SHA-256: a file whose size differs from the published one is bad without being read; one of that
+    size is read whole (~1 s for VGG16's 553 MB)."""
     searched = candidates(entry, dest, configured)
     path = next((p for p in searched if p.is_file()), None)
     if path is None:
         return Status(entry, searched, None, "-")
     if entry.sha256 is None:
         return Status(entry, searched, path, "unknown")
+    if entry.size is not None and path.stat().st_size != entry.size:
+        return Status(entry, searched, path, "bad")
     return Status(entry, searched, path, "ok" if file_sha256(path) == entry.sha256 else "bad")
 
 
+def check_destination(dest_dir: Path) -> None:
+    """FetchError unless `dest_dir` is a folder or can be made one (no file in its place or above it)."""
+    dest_dir = Path(dest_dir)
+    existing = next((p for p in (dest_dir, *dest_dir.parents) if os.path.lexists(p)), None)
+    if existing is not None and not existing.is_dir():
+        where = "is" if existing == dest_dir else f"lies under {existing}, which is"
+        raise FetchError(f"{dest_dir}: {where} a file, not a folder; choose a folder to fetch into (--dest)")
+
+
 def fetch(entry: WeightFile, dest_dir: Path, opener: Callable = urllib.request.urlopen, timeout: float = 60.0,
-          report: Callable[[str], None] = print) -> Path:
-    """Download `entry` into `dest_dir`: to a hidden temporary beside it, SHA-256 checked, then linked into place
-    under its published name (atomic, and never over a file already there). Returns the path; raises FetchError
-    (the temporary removed) on a file without a confirmed SHA-256, an HTTP or network error, a cut transfer or a
-    checksum mismatch."""
+          report: Callable[[str], None] = print, clock: Callable[[], float] = time.monotonic,
+          min_rate: float = MIN_BYTES_PER_S, window_s: float = RATE_WINDOW_S) -> Path:
+    """Download `entry` into `dest_dir`: to a hidden temporary beside it (pig._io.create_temporary: made here,
+    never through a planted link), SHA-256 checked, then linked into place under its published name (atomic, and
+    never over a file already there). Returns the path; raises FetchError (the temporary removed) on a file without
+    a confirmed SHA-256, a destination that is no writable folder, an HTTP or network error, no byte within
+    `timeout` seconds, fewer than `min_rate` bytes a second over any `window_s` seconds by `clock`, a cut
+    transfer or a checksum mismatch."""
     target = Path(dest_dir) / entry.filename
     if entry.sha256 is None:
         raise FetchError(f"{entry.filename}: no SHA-256 of it was confirmed from a source, so it is not fetched; "
                          f"download {entry.url} yourself, check it, and place it at {target}")
-    if target.exists():
+    check_destination(Path(dest_dir))
+    if os.path.lexists(target):
         raise FetchError(f"{target}: already there; nothing fetched (move it away first to fetch it again)")
-    tmp = _temporary(target)
     try:
-        digest, received = hashlib.sha256(), 0
+        tmp, fd = create_temporary(target)
+    except OSError as err:
+        raise FetchError(f"{target}: cannot write in its folder ({err.strerror or err}); choose a folder to fetch "
+                         "into that this user can write (--dest); nothing was fetched") from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            created = os.fstat(out.fileno())
+            _download(entry, out, target, opener, timeout, report, clock, min_rate, window_s)
         try:
-            with opener(entry.url, timeout=timeout) as response, open(tmp, "wb") as out:
-                length = response.headers.get("Content-Length")
-                length = int(length) if length is not None and length.strip().isdigit() else None
-                expected = length if length is not None else entry.size
-                report(f"weights: fetching {entry.filename} ({_megabytes(expected)}) from {entry.url}; its SHA-256 "
-                       f"from {entry.source}")
-                with progress_bar(total=expected, unit="B", unit_scale=True, desc=entry.name, leave=False) as bar:
-                    for block in iter(lambda: response.read(CHUNK), b""):
-                        received += len(block)
-                        if entry.size is not None and received > entry.size:  # a server that never stops sending
-                            raise FetchError(f"{entry.filename}: download from {entry.url} sent more than the "
-                                             f"{entry.size:,} bytes of the published file; stopped, nothing was kept")
-                        digest.update(block)
-                        out.write(block)
-                        bar.update(len(block))
-        except FetchError:
-            raise
-        except urllib.error.HTTPError as err:
-            raise FetchError(f"{entry.filename}: HTTP {err.code} ({err.reason}) from {entry.url}") from None
-        except (urllib.error.URLError, OSError, http.client.HTTPException) as err:  # refused, unreachable, cut off
-            why = getattr(err, "reason", err)
-            raise FetchError(f"{entry.filename}: download from {entry.url} failed after {received:,} bytes ({why})") \
-                from None
-        if length is not None and received != length:
-            raise FetchError(f"{entry.filename}: download from {entry.url} was cut off at {received:,} of "
-                             f"{length:,} bytes; nothing was kept")
-        if digest.hexdigest() != entry.sha256:
-            raise FetchError(f"{entry.filename}: SHA-256 of the download from {entry.url} is {digest.hexdigest()}, "
-                             f"expected {entry.sha256}; the download was deleted, nothing was kept")
+            _still_ours(tmp, created)
+        except OSError as err:
+            raise FetchError(f"{entry.filename}: {err}") from None
         _place(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
     return target
+
+
+def _download(entry: WeightFile, out, target: Path, opener: Callable, timeout: float, report: Callable[[str], None],
+              clock: Callable[[], float], min_rate: float, window_s: float) -> None:
+    """Write `entry`'s download to the file `out` (of `target`) under `fetch`'s checks."""
+    digest, received = hashlib.sha256(), 0
+    try:
+        with opener(entry.url, timeout=timeout) as response:
+            length = response.headers.get("Content-Length")
+            length = int(length) if length is not None and length.strip().isdigit() else None
+            expected = length if length is not None else entry.size
+            report(f"weights: fetching {entry.filename} ({_megabytes(expected)}) from {entry.url}; its SHA-256 "
+                   f"from {entry.source}")
+            window_start, window_bytes = clock(), 0
+            with progress_bar(total=expected, unit="B", unit_scale=True, desc=entry.name, leave=False) as bar:
+                # read1: whatever one socket read brings, so that a trickle comes back here to be timed
+                for block in iter(lambda: response.read1(CHUNK), b""):
+                    received += len(block)
+                    if entry.size is not None and received > entry.size:  # a server that never stops sending
+                        raise FetchError(f"{entry.filename}: download from {entry.url} sent more than the "
+                                         f"{entry.size:,} bytes of the published file; stopped, nothing was kept")
+                    digest.update(block)
+                    try:
+                        out.write(block)
+                    except OSError as err:
+                        raise FetchError(f"{target}: writing the download failed after {received:,} bytes "
+                                         f"({err.strerror or err}); nothing was kept") from None
+                    bar.update(len(block))
+                    window_bytes += len(block)
+                    elapsed = clock() - window_start
+                    if elapsed >= window_s:
+                        if window_bytes < min_rate * elapsed:
+                            raise FetchError(
+                                f"{entry.filename}: download from {entry.url} too slow: {window_bytes:,} bytes in the "
+                                f"last {elapsed:.0f} s, below the floor of {min_rate / 1e3:,.0f} kB/s; given up after "
+                                f"{received:,} of {_megabytes(expected)}, nothing was kept. Try again later, or "
+                                f"download it by other means and place it at its path (sha256 {entry.sha256})")
+                        window_start, window_bytes = clock(), 0
+    except FetchError:
+        raise
+    except urllib.error.HTTPError as err:
+        raise FetchError(f"{entry.filename}: HTTP {err.code} ({err.reason}) from {entry.url}") from None
+    except (urllib.error.URLError, OSError, http.client.HTTPException) as err:  # refused, unreachable, cut off
+        why = getattr(err, "reason", err)
+        raise FetchError(f"{entry.filename}: download from {entry.url} failed after {received:,} bytes ({why})") \
+            from None
+    if length is not None and received != length:
+        raise FetchError(f"{entry.filename}: download from {entry.url} was cut off at {received:,} of "
+                         f"{length:,} bytes; nothing was kept")
+    if digest.hexdigest() != entry.sha256:
+        raise FetchError(f"{entry.filename}: SHA-256 of the download from {entry.url} is {digest.hexdigest()}, "
+                         f"expected {entry.sha256}; the download was deleted, nothing was kept")
 
 
 # FitConfig's defaults of the keys that decide the fit's LPIPS term (pig.avatar.fit_config; a test holds them equal):
@@ -240,7 +293,14 @@ def check_and_fetch(names: Iterable[str] | None = None, fetch_missing: bool = Fa
     failures = []
     if fetch_missing:
         folder = Path(dest) if dest is not None else hub_checkpoints()
-        for entry in entries:
+        try:
+            check_destination(folder)
+        except FetchError as err:  # said once, not once per file
+            failures.append(str(err))
+            entries_to_fetch = []
+        else:
+            entries_to_fetch = entries
+        for entry in entries_to_fetch:
             if not any(path.is_file() for path in candidates(entry, dest)):
                 try:
                     report(f"weights: {entry.filename} ok, at {fetch(entry, folder, opener, report=report)}")

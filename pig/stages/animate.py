@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 from pig.avatar.animation import Orbit, animate
+from pig.body.motion import FPS_RANGE
 from pig.config import load_preset, load_section
 from pig.render.api import RasterizerConfig
 from pig.render.video_page import is_video_page, video_page
@@ -18,7 +19,7 @@ from pig._io import write_text
 from pig._outputs import check_apart
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 
-MAX_FPS = 1000.0
+MIN_FPS, MAX_FPS = FPS_RANGE
 MAX_SECONDS = 3600.0  # an hour of a still pose; motions bring their own length
 SIDE_RANGE = (16, 8192)  # orbit image sides in pixels: VP9 and the renderer's memory
 
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--capture", type=Path, default=None, help="preprocessed capture the --camera belongs to")
     parser.add_argument("--lod", type=int, default=None, help="level of detail (0 = coarsest; default: the finest)")
     parser.add_argument("--frames", default=None, help="motion frames START:STOP[:STEP] (default: all)")
-    parser.add_argument("--fps", type=_in_range(float, 0, MAX_FPS, low_open=True), default=None,
+    parser.add_argument("--fps", type=_in_range(float, MIN_FPS, MAX_FPS), default=None,
                         help="resample the motion to this frame rate (default: its own)")
     parser.add_argument("--up", default=None, choices=["+x", "-x", "+y", "-y", "+z", "-z"],
                         help="the capture's up axis (default: inferred from the avatar's training poses)")

@@ -27,7 +27,7 @@ import torch
 from pig.body.model import BodyModel, BodyModelError
 from pig.config import Bounds, ConfigError, load_preset, load_section, load_yaml, named_config
 from pig.data.capture import MASK_SUFFIX
-from pig.data.formats import FORMATS, capture_format, open_capture
+from pig.data.formats import FORMATS, capture_format, open_capture, reader_options
 from pig.data.ground_truth import GT_MESHES, TrueMeshes
 from pig.data.images import read_image
 from pig.data.projection_check import Tolerance, View, check_projection
@@ -348,7 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output", required=True, type=Path, help="preprocessed capture folder to write")
     add_preset_argument(parser, "its preprocess section")
     parser.add_argument("--dataset", default=None,
-                        help="dataset YAML or name under config/datasets/ (its `split:` section and `body_model`)")
+                        help="dataset YAML or name under config/datasets/ (its `split:` and `reader:` sections and "
+                             "`body_model`)")
     parser.add_argument("--subject", default=None, help="subject name for per-subject split rules (default: input folder name)")
     parser.add_argument("--body-model", default=None, type=Path,
                         help="SMPL-X model npz (default: the dataset's body_model, else body_model.npz in --input)")
@@ -367,6 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     capture_format(fmt).required_files(args.input)  # a missing root says where the data goes, before anything else
     body_model = resolve_body_model(args.body_model or dataset.get("body_model"), args.input)
     options = {"body_model": body_model} if capture_format(fmt).needs_body_model else {}
+    options.update(reader_options(fmt, dataset.get("reader"), f"{dataset.get('_path', '--dataset')}"))
     raw = open_capture(fmt, args.input, **options)
     report = preprocess_capture(raw, args.output, cfg, body_model, split_cfg, args.subject or args.input.name,
                                 split_source, progress=not args.quiet, overwrite=args.overwrite,

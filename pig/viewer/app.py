@@ -9,10 +9,13 @@ colour) through the driver's real-time path and streams JPEG frames; the page sh
 stretched over its canvas where they are smaller (`render_height`, the CPU's default).
 
 Updates run on worker threads that always take the latest state, so dragging the slider faster than frames
-are made skips frames instead of queueing them.
+are made skips frames instead of queueing them. What a page sends is not trusted: a control's value outside its
+range is clamped or ignored, a canvas is rendered at most MAX_CANVAS_SIDE pixels on a side, an error making one
+client's frame is reported and the next frame made, and only the viewer's own pages connect (pig.viewer.guard).
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from pathlib import Path
@@ -23,6 +26,7 @@ import torch
 from pig.avatar.animation import Orbit, orbit_cameras
 from pig.avatar.driver import AvatarDriver
 
+from .guard import RequestGuard, guarded_server
 from .splats import browser_splats, camera_pose
 from .timeline import Timeline
 
@@ -32,13 +36,18 @@ PATHS = ("browser", "server")
 # at 240 x 180, ~70 ms at 320 x 240); at 180 lines a pose change reaches a page on a loaded 2-core machine in
 # 170-240 ms (benchmarks/NOTES.md, "The viewer on the CPU"); the page stretches the frames over its canvas.
 CPU_RENDER_HEIGHT = 180
+# The largest side the server path renders, whatever canvas a page reports (a 1,000,000 x 180 one took 8.5 GB);
+# a larger canvas gets a frame of its aspect, stretched over it.
+MAX_CANVAS_SIDE = 4096
 
 
 class _Latest:
-    """A worker thread that runs `work()` whenever poked, at most once per batch of pokes."""
+    """A worker thread that runs `work()` whenever poked, at most once per batch of pokes. An error in `work` is
+    said on stderr (each kind once) and the thread waits for the next poke: it never ends the thread."""
 
     def __init__(self, work, name: str):
         self._work, self._poked, self._stopped = work, threading.Event(), False
+        self._name, self._reported = name, set()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -56,19 +65,26 @@ class _Latest:
             self._poked.clear()
             if self._stopped:
                 return
-            self._work()
+            try:
+                self._work()
+            except Exception as err:  # one bad frame (a client's camera, say) must not stop the others
+                why = f"{type(err).__name__}: {err}"
+                if why not in self._reported:
+                    self._reported.add(why)
+                    print(f"view: {self._name}: {why}; the viewer goes on", file=sys.stderr, flush=True)
 
 
 class Viewer:
     """A viser server showing the avatar of `driver` along `timeline`; `capture` (a pig.data.capture.Capture or
     None) adds its cameras and ground truth images. `path` is "browser" or "server" (see the module's doc);
     `jpeg_quality` is the server path's frame encoding; `render_height` (None: the page's canvas size) caps the
-    height of the frames it renders, the page stretching them over its canvas. Call `close()` to stop it."""
+    height of the frames it renders, the page stretching them over its canvas. Pages of `allow_origins` (origins
+    such as "https://name.example") may connect besides the viewer's own (pig.viewer.guard). Call `close()` to
+    stop it."""
 
     def __init__(self, driver: AvatarDriver, timeline: Timeline, capture=None, path: str = "browser",
-                 host: str = "127.0.0.1", port: int = 8080, jpeg_quality: int = 85, render_height: int | None = None):
-        import viser
-
+                 host: str = "127.0.0.1", port: int = 8080, jpeg_quality: int = 85, render_height: int | None = None,
+                 allow_origins: tuple[str, ...] = ()):
         if path not in PATHS:
             raise ValueError(f"viewer path must be one of {PATHS}, got {path!r}")
         model = driver.model
@@ -78,7 +94,7 @@ class Viewer:
             raise ValueError(f"viewer render_height must be a positive number of pixels, got {render_height}")
         self.render_height = render_height
         self._lock = threading.Lock()  # one frame at a time through the driver (its CUDA graph outputs are shared)
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server = guarded_server(RequestGuard(host, tuple(allow_origins)), host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_layout="floating", dark_mode=True, show_share_button=False)
         self.server.scene.set_up_direction(tuple(float(v) for v in timeline.up))
         self.frames_sent = 0  # frames the server path has handed to viser, over all clients
@@ -93,8 +109,9 @@ class Viewer:
         home.up = self._home["up_direction"]
 
         gui = self.server.gui
-        levels = [f"{level}: {n} splats" for level, n in enumerate(model.level_sizes)]
-        self.lod = gui.add_dropdown("LOD", levels, initial_value=levels[-1])
+        self._levels = [f"{level}: {n} splats" for level, n in enumerate(model.level_sizes)]
+        self._level, self._frame = len(self._levels) - 1, 0  # the last good values of the LOD and frame controls
+        self.lod = gui.add_dropdown("LOD", self._levels, initial_value=self._levels[-1])
         self.frame = gui.add_slider(f"frame ({timeline.source})", min=0, max=max(timeline.length - 1, 1), step=1,
                                     initial_value=0, disabled=timeline.length < 2)
         self.play = gui.add_checkbox("play", initial_value=False)
@@ -103,6 +120,7 @@ class Viewer:
             for split in ("train", *sorted(s for s in capture.split if s != "train")):
                 cameras += [f"{c} ({split})" for c in capture.split[split]["cameras"] if c not in seen]
                 seen.update(capture.split[split]["cameras"])
+        self._cameras = cameras
         self.camera = gui.add_dropdown("camera", cameras, initial_value=ORBIT, disabled=capture is None)
         self.truth = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="ground truth", visible=False)
 
@@ -126,7 +144,25 @@ class Viewer:
 
     @property
     def level(self) -> int:
-        return int(self.lod.value.split(":")[0])
+        """The LOD control's level; a value outside its options (only a crafted message sends one) is ignored."""
+        if self.lod.value in self._levels:
+            self._level = self._levels.index(self.lod.value)
+        return self._level
+
+    @property
+    def frame_index(self) -> int:
+        """The frame slider's timeline entry, clamped to the timeline; a value that is no integer is ignored."""
+        try:
+            index = int(self.frame.value)
+        except (TypeError, ValueError, OverflowError):
+            return self._frame
+        self._frame = min(max(index, 0), self.timeline.length - 1)
+        return self._frame
+
+    @property
+    def camera_choice(self) -> str:
+        """The camera control's choice; a value outside its options reads as the orbit."""
+        return self.camera.value if self.camera.value in self._cameras else ORBIT
 
     @property
     def url(self) -> str:
@@ -165,7 +201,7 @@ class Viewer:
             renderer.stop()
 
     def _jump(self, event) -> None:
-        choice = self.camera.value
+        choice = self.camera_choice
         if choice != ORBIT:
             pose = self.capture_camera_pose(choice.split(" (")[0])
             clients = [event.client] if event.client is not None else list(self.server.get_clients().values())
@@ -175,8 +211,8 @@ class Viewer:
 
     def _show_truth(self) -> None:
         """The ground truth image of the chosen capture camera at the shown training frame, where there is one."""
-        choice = self.camera.value
-        timestep = self.timeline.timestep(int(self.frame.value))
+        choice = self.camera_choice
+        timestep = self.timeline.timestep(self.frame_index)
         if self.capture is None or choice == ORBIT or timestep is None:
             self.truth.visible = False
             return
@@ -194,13 +230,13 @@ class Viewer:
         while not self._closed:
             start = time.perf_counter()
             if self.play.value and self.timeline.length > 1:
-                self.frame.value = (int(self.frame.value) + 1) % self.timeline.length
+                self.frame.value = (self.frame_index + 1) % self.timeline.length
             time.sleep(max(0.0, 1.0 / self.timeline.fps - (time.perf_counter() - start)))
 
     # ---- the two drawing paths ----
 
     def _update_splats(self) -> None:
-        level, index = self.level, int(self.frame.value)
+        level, index = self.level, self.frame_index
         with self._lock:
             centres, covariances, rgb, opacities = browser_splats(*self.timeline.gaussians(level, index))
         if self.splats is None:
@@ -220,12 +256,11 @@ class Viewer:
             return
         if width < 1 or height < 1:
             return
-        if self.render_height is not None and height > self.render_height:  # same field of view, fewer pixels
-            width, height = max(1, round(width * self.render_height / height)), self.render_height
+        width, height = frame_size(width, height, self.render_height)
         viewmat, K = viser_view(wxyz, position, fov, width, height)
         device = self.driver.device
         with self._lock:
-            means, quats, scales, opacities, sh = self.timeline.gaussians(self.level, int(self.frame.value))
+            means, quats, scales, opacities, sh = self.timeline.gaussians(self.level, self.frame_index)
             out = render_gaussians(means.float(), quats.float(), scales.float(), opacities.float(), sh.float(),
                                    torch.as_tensor(viewmat, dtype=torch.float32, device=device)[None],
                                    torch.as_tensor(K, dtype=torch.float32, device=device)[None], width, height,
@@ -245,6 +280,16 @@ class Viewer:
         self.server.stop()
 
 
+def frame_size(width: int, height: int, render_height: int | None = None) -> tuple[int, int]:
+    """(width, height) the server path renders a page's `width` x `height` canvas at: the canvas's aspect and field
+    of view, at most `render_height` lines (None: no such cap) and MAX_CANVAS_SIDE pixels on either side."""
+    scale = min(1.0, MAX_CANVAS_SIDE / width, MAX_CANVAS_SIDE / height,
+                render_height / height if render_height is not None else 1.0)
+    if scale == 1.0:
+        return width, height
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
 def viser_view(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, height: int
                ) -> tuple[np.ndarray, np.ndarray]:
     """(world-to-camera (4, 4), K (3, 3)) of a viser camera: `wxyz` rotates camera axes (OpenCV: x right, y down,
@@ -262,11 +307,11 @@ def viser_view(wxyz: np.ndarray, position: np.ndarray, fov: float, width: int, h
 
 
 def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path | None = None, host: str = "127.0.0.1",
-                port: int = 8080, device: str = "auto", path: str | None = None, render_height: int | None = None
-                ) -> Viewer:
+                port: int = 8080, device: str = "auto", path: str | None = None, render_height: int | None = None,
+                allow_origins: tuple[str, ...] = ()) -> Viewer:
     """Load the avatar of `checkpoint` on `device` and serve it; `path` defaults to "server" (on the CPU too: a
     browser without a GPU draws 16k splats several times slower than the CPU renders a small frame);
-    `render_height` as `Viewer`'s, default CPU_RENDER_HEIGHT on the CPU."""
+    `render_height` as `Viewer`'s, default CPU_RENDER_HEIGHT on the CPU; `allow_origins` as `Viewer`'s."""
     from pig.avatar.checkpoint import load_avatar
     from pig.config import resolve_device
     from pig.data.capture import Capture
@@ -284,4 +329,5 @@ def open_viewer(checkpoint: Path, motion: Path | None = None, capture_dir: Path 
         render_height = CPU_RENDER_HEIGHT
     if device.type == "cuda":
         timeline.gaussians(model.num_levels - 1, 0)  # compile and capture the frame before a page waits for it
-    return Viewer(driver, timeline, capture, path, host, port, render_height=render_height)
+    return Viewer(driver, timeline, capture, path, host, port, render_height=render_height,
+                  allow_origins=allow_origins)

@@ -43,6 +43,14 @@ def camera_message(position, look_at, up, fov: float, width: int, height: int) -
     return msgspec.msgpack.encode(message.as_serializable_dict())
 
 
+def gui_message(handle, value) -> bytes:
+    """A GuiUpdateMessage setting the control `handle` (a viser GUI handle) to `value`, as a page sends it."""
+    import msgspec
+    from viser._messages import GuiUpdateMessage
+
+    return msgspec.msgpack.encode(GuiUpdateMessage(handle._impl.uuid, {"value": value}).as_serializable_dict())
+
+
 class ViserClient:
     """One websocket connection to a viser server at `url` (ws://host:port)."""
 

@@ -17,10 +17,11 @@ from snakemake_interface_executor_plugins.settings import ExecMode
 from pig.avatar.config import AvatarConfig
 from pig.avatar.variants import table_variants, variant_overrides
 from pig.config import load_preset, load_section, load_yaml
-from pig.data.formats import capture_format
+from pig.data.formats import capture_format, subject_path
 from pig.data.raw import CaptureError
 from pig.data.synthetic.config import SyntheticConfig
 from pig.gpu_slots import LOCAL_SLOTS_ENV, machine_devices
+from pig.job_lifetime import JOB_ENV
 from pig.metrics.weight_files import FETCH_COMMAND, loss_weight_problems
 from pig.names import safe_name
 from pig.resources import check_rule_names, rule_resources
@@ -37,7 +38,7 @@ ANIMATE_OPTIONS = "--fps 15 --size 384 384"  # the examples: small and quick on 
 PREVIEW_CLIP = "preview"
 PREVIEW_OPTIONS = "--fps 8 --seconds 2.5 --orbit-period 2.5 --size 160 160"
 # The keys of a dataset YAML that pig.stages.preprocess reads (subject lists and root are not among them).
-PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split")
+PREPROCESS_DATASET_KEYS = ("name", "format", "body_model", "split", "reader")
 
 
 def check_renamed_config_keys():
@@ -87,6 +88,11 @@ def check_preset_resources():
                 f"{preset()['_path']}: section 'resources' gives rule {name} a GPU, which it does not use; "
                 "expected gpu: 0 for it"
             )
+
+
+# A job's stage ends with the job's shell (pig.job_lifetime) rather than run on as an orphan that holds its output lock
+# against the rerun. The jobs inherit this process's environment; an environment variable, so nothing reruns.
+os.environ[JOB_ENV] = "1"
 
 
 # Local GPU slots (pig.gpu_slots). The command of every rule that may use a GPU starts with the slot launcher. On a
@@ -186,8 +192,11 @@ def subjects(name, table="main"):
 
 
 def raw_root(dataset, subject):
-    """Where the raw capture of a subject lives (generated for the synthetic dataset)."""
-    return str(Path(dataset_config(dataset)["root"]) / subject)
+    """Where the raw capture of a subject lives (generated for the synthetic dataset): `root/<subject>`, or
+    `root/<path>` where the dataset's `subject_paths` maps the subject to a nested folder (ActorsHQ's
+    Actor01/Sequence1)."""
+    data = dataset_config(dataset)
+    return str(Path(data["root"]) / subject_path(data, subject, config["datasets"][dataset]))
 
 
 def default_targets():

@@ -1,0 +1,146 @@
+"""The equal-time study's table and figure, regenerated from the fits' records (benchmarks/gpu_runs/equal_time.yaml).
+
+Each fit listed there is one `benchmarks/fit_gpu.py --budget B --json ...` variant: its final novel view and novel
+pose metrics at the finest LOD (with the synthetic subject's ground truth: garment and body PSNR, geometry, drift),
+and its held-out novel-view PSNR against training seconds. Prints one Markdown table: every (seed, budget,
+variant) with the mean over its replicates and, where there are several, the spread (max - min); then the held-out
+novel-view PSNR read off each fit's curve at 1, 2, 5 and 10 minutes (labelled "curve": linear between the
+evaluations around that time, every 1000 iterations). `--plot` draws error against training time, one panel per metric, both subjects:
+
+    python benchmarks/equal_time.py --plot docs/equal_time.png
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+HERE = Path(__file__).resolve().parent / "gpu_runs"
+# (column, split, key in the evaluate summary, decimals): the table's metrics, finest LOD.
+METRICS = [("NV PSNR", "novel_view", "psnr", 2), ("NV SSIM", "novel_view", "ssim", 4),
+           ("NP PSNR", "novel_pose", "psnr", 2), ("NP SSIM", "novel_pose", "ssim", 4),
+           ("garment NV dB", "novel_view", "psnr_garment", 2), ("body NV dB", "novel_view", "psnr_body", 2),
+           ("garment acc / comp mm", "novel_view", ("accuracy_mm_garment", "completeness_mm_garment"), 1),
+           ("body acc / comp mm", "novel_view", ("accuracy_mm_body", "completeness_mm_body"), 1),
+           ("drift mm", "novel_view", "drift_mm", 1)]
+CURVE_MINUTES = (1, 2, 5, 10)
+
+
+def load_fits(manifest: Path) -> list[dict]:
+    """The manifest's fits, each with its final metrics, iterations, ms/it and held-out curve [(train s, dB)]."""
+    entries = yaml.safe_load(manifest.read_text())["fits"]
+    fits = []
+    for entry in entries:
+        record = json.loads((manifest.parent / entry["json"]).read_text())["results"]
+        [result] = [r for r in record if r.get("budget")]
+        budget = result["budget"]
+        finest = {split: budget[split][max(budget[split], key=int)] for split in ("novel_view", "novel_pose")}
+        fits.append({**entry, "variant": result["variant"], "final": finest, "iterations": budget["iterations"],
+                     "train_s": budget["train_s"], "compile_s": budget.get("compile_s", math.nan),
+                     "ms_per_iteration": result["ms_per_iteration"], "curve": [tuple(p) for p in result["heldout_by_time"]]})
+    return fits
+
+
+def metric(fit: dict, split: str, key) -> float | tuple[float, float]:
+    values = fit["final"][split]
+    return tuple(values[k] for k in key) if isinstance(key, tuple) else values[key]
+
+
+def read_off(curve: list[tuple[float, float]], seconds: float) -> float:
+    """The held-out PSNR at `seconds`, linear between the evaluations around it (NaN past the curve's end)."""
+    if not curve or curve[-1][0] < seconds - 1.0:
+        return math.nan
+    times, values = zip(*curve)
+    return float(np.interp(seconds, times, values))
+
+
+def cell(values: list, decimals: int) -> str:
+    if isinstance(values[0], tuple):
+        return " / ".join(cell([v[i] for v in values], decimals) for i in range(len(values[0])))
+    mean = float(np.mean(values))
+    return f"{mean:.{decimals}f}" + (f" ± {(max(values) - min(values)) / 2:.{decimals}f}" if len(values) > 1 else "")
+
+
+def table(fits: list[dict]) -> str:
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for fit in fits:
+        groups[(fit["seed"], fit["budget_s"], fit["variant"])].append(fit)
+    lines = ["| seed | budget | variant | fits | iterations | " + " | ".join(m[0] for m in METRICS) + " |",
+             "|---|---|---|---|---|" + "---|" * len(METRICS)]
+    for (seed, budget, variant), group in sorted(groups.items()):
+        cells = [cell([metric(f, split, key) for f in group], decimals) for _, split, key, decimals in METRICS]
+        iterations = "/".join(str(f["iterations"]) for f in group)
+        lines.append(f"| {seed} | {budget / 60:g} min | {variant} | {len(group)} | {iterations} | " + " | ".join(cells) + " |")
+    lines += ["", "Held-out novel-view PSNR read off the curves (curve: linear between the evaluations around the time)", "",
+              "| seed | budget | variant | fit | " + " | ".join(f"{m} min (curve)" for m in CURVE_MINUTES) + " |",
+              "|---|---|---|---|" + "---|" * len(CURVE_MINUTES)]
+    for fit in sorted(fits, key=lambda f: (f["seed"], f["budget_s"], f["variant"], f["replicate"])):
+        values = [read_off(fit["curve"], 60 * m) for m in CURVE_MINUTES]
+        lines.append(f"| {fit['seed']} | {fit['budget_s'] / 60:g} min | {fit['variant']} | {fit['replicate']} | "
+                     + " | ".join("-" if math.isnan(v) else f"{v:.2f}" for v in values) + " |")
+    return "\n".join(lines)
+
+
+def plot(fits: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("held-out NV PSNR (curve) [dB]", None)] + [(m[0], m) for m in METRICS if m[0] != "NV SSIM"]
+    columns = 4
+    rows = math.ceil(len(panels) / columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4 * columns, 3.2 * rows), squeeze=False)
+    variants = sorted({f["variant"] for f in fits})
+    colours = {v: plt.cm.tab10(i) for i, v in enumerate(variants)}
+    styles = {0: "-", 1: "--"}
+    for ax, (title, spec) in zip(axes.flat, panels):
+        for fit in fits:
+            colour, style = colours[fit["variant"]], styles.get(fit["seed"], ":")
+            if spec is None:
+                t, psnr = zip(*fit["curve"][1:])  # the start (0 s, untrained) would squash the axis
+                ax.plot(np.array(t) / 60, psnr, style, color=colour, alpha=0.8)
+            else:
+                value = metric(fit, spec[1], spec[2])
+                value = value[0] if isinstance(value, tuple) else value  # geometry: accuracy
+                ax.plot(fit["budget_s"] / 60, value, "o" if fit["seed"] == 0 else "s", color=colour, alpha=0.8)
+        ax.set_title(title if spec is None or not isinstance(spec[2], tuple) else title.split(" / ")[0] + " mm",
+                     fontsize=9)
+        ax.set_xlabel("training minutes")
+        ax.set_xlim(0, max(f["budget_s"] for f in fits) / 60 + 1)
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    handles = [plt.Line2D([], [], color=colours[v], label=v) for v in variants]
+    handles += [plt.Line2D([], [], color="k", linestyle=styles[s], marker="o" if s == 0 else "s", label=f"seed {s}")
+                for s in sorted({f["seed"] for f in fits})]
+    fig.legend(handles=handles, loc="lower right", fontsize=8)
+    fig.suptitle("Equal training time (compilation, evaluations and checkpoints left out), finest LOD", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--manifest", type=Path, default=HERE / "equal_time.yaml")
+    parser.add_argument("--plot", type=Path, default=None, help="write the figure here")
+    args = parser.parse_args(argv)
+    fits = load_fits(args.manifest)
+    print(table(fits))
+    for fit in fits:
+        print(f"\n{fit['hold']} seed {fit['seed']} {fit['variant']} #{fit['replicate']} ({fit['device']}): "
+              f"{fit['iterations']} iterations, {fit['ms_per_iteration']:.1f} ms/it, {fit['train_s']:.0f} training s, "
+              f"{fit['compile_s']:.0f} s of compilation left out", end="")
+    print()
+    if args.plot is not None:
+        plot(fits, args.plot)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
