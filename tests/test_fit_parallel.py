@@ -2,6 +2,12 @@
 against 1 on one step (gradients, loss, weights), rank 0's clock deciding for all, resume across process counts."""
 import csv
 import functools
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
 from contextlib import nullcontext
 from dataclasses import asdict, replace
 from datetime import timedelta
@@ -246,6 +252,71 @@ def test_resume_across_process_counts(small_capture, tmp_path):
     fit(small_capture, out, preset, progress_s=1e6)
     assert [int(r["iteration"]) for r in _log(out)] == list(range(7))
     assert not (out / "checkpoint.pt").exists() and (out / "avatar.pt").exists()
+
+
+class _WritePid:
+    """Writes this rank's process id to `folder`/pid{rank} after its first iteration."""
+
+    def __init__(self, folder: str, rank: int):
+        self.path = Path(folder) / f"pid{rank}"
+
+    def __call__(self, iteration: int) -> None:
+        if not self.path.exists():
+            self.path.write_text(str(os.getpid()))
+
+
+def _pid_hooks(folder: str, rank: int) -> RankHooks:
+    return RankHooks(on_iteration=_WritePid(folder, rank))
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as file:
+            return file.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
+def _wait_until(condition, limit_s: float) -> bool:
+    """Polls `condition` until it holds or `limit_s` passed (a limit, not a measurement)."""
+    end = time.monotonic() + limit_s
+    while not condition():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.2)
+    return True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_ranks_end_with_the_process_that_started_them(small_capture, tmp_path):
+    # The starting process killed (SIGKILL: no handler runs) mid-fit: its ranks must not fit on as orphans, holding
+    # the devices while a rerun takes the output folder (torch's spawn asks the kernel to send them SIGINT then).
+    preset = write_test_preset(tmp_path, iterations=10**6, eval_every=10**6)
+    script = tmp_path / "start.py"
+    script.write_text(textwrap.dedent(f"""
+        import functools, sys
+        sys.path[:0] = {[str(Path(__file__).parent), *sys.path]!r}
+        from test_fit_parallel import _pid_hooks
+        from pig.avatar.parallel_fit import fit_parallel
+        if __name__ == "__main__":
+            fit_parallel({str(small_capture)!r}, {str(tmp_path / "out")!r}, {preset!r}, "pig", 2, "cpu", progress_s=1e6,
+                         rank_hooks=functools.partial(_pid_hooks, {str(tmp_path)!r}))
+    """))
+    starter = subprocess.Popen([sys.executable, str(script)], env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    pids = [tmp_path / f"pid{rank}" for rank in range(WORLD)]
+    try:
+        assert _wait_until(lambda: all(p.exists() for p in pids) or starter.poll() is not None, 300)
+        assert starter.poll() is None, "the fit ended before it was killed"
+        ranks = [int(p.read_text()) for p in pids]
+        starter.kill()
+        starter.wait()
+        assert _wait_until(lambda: not any(map(_running, ranks)), 60), "a rank outlived the process that started it"
+    finally:
+        if starter.poll() is None:
+            starter.kill()
+        for p in pids:  # what this test started, should it have outlived the test
+            if p.exists() and _running(int(p.read_text())):
+                os.kill(int(p.read_text()), signal.SIGKILL)
 
 
 def test_fit_stage_gpus_option(small_capture, tmp_path, capsys):

@@ -95,7 +95,7 @@ def _rank_main(rank: int, port: int, world: int, device_type: str, capture_dir: 
     try:
         fit_rank(Path(capture_dir), Path(output_dir), preset_name, variant, parallel, hooks.on_iteration, hooks.phase,
                  progress_s, tensorboard)
-    except BaseException as err:
+    except Exception as err:  # not KeyboardInterrupt: the spawned ranks get SIGINT when the starting process ends
         if store.add("failures", 1) == 1:  # before this process ends, so before another rank sees it gone
             store.set(FIRST_FAILURE, f"rank {rank} of {world}: {type(err).__name__}: {err}")
         raise  # the process ends without destroying the group: NCCL's teardown may wait on the failed collective
