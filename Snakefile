@@ -12,6 +12,7 @@ include: "workflow/rules/common.smk"
 
 check_renamed_config_keys()
 validate(config, "config/schema/config.schema.yaml")
+check_config_paths()
 register_gpu_slots()
 
 

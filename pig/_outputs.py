@@ -72,6 +72,10 @@ def _foreign(folder: Path, stage: str, files: list[str]) -> str:
 def claim_dir(output: str | Path, stage: str, inputs: Iterable[str | Path] = (), overwrite: bool = False) -> Path:
     """Check that `stage` may replace the folder `output` as a whole (see `build_dir`); writes nothing."""
     output = Path(output)
+    if output.is_symlink():  # the replacement would put the new folder in place of the link, not of its target
+        raise OutputError(f"{output}: a symbolic link (to {os.readlink(output)}); the {stage} stage replaces its "
+                          "output folder as a whole, which would replace the link; give the folder's own path, or "
+                          "remove the link")
     check_folder_path(output)
     check_apart(output, inputs)
     if output.is_dir() and not overwrite and marked_stage(output) != stage:

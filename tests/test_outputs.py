@@ -295,3 +295,30 @@ def test_remove_orphans_matches_only_its_own_path(tmp_path, dead_pid):
     assert sorted(p.name for p in removed) == sorted(names[:2])
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names[2:])
     assert remove_orphans(tmp_path / "missing" / "avatar.pt") == []
+
+
+@pytest.mark.parametrize("builder", ["resumable_dir", "build_dir"])
+def test_a_symlinked_output_folder_is_refused_before_anything_changes(tmp_path, builder):
+    """Sweep three: a render folder that was a symbolic link to an earlier render was renamed aside as the old
+    folder, the new one put in its place, and then rmtree failed on the link ("Cannot call rmtree on a symbolic
+    link"): the link was already gone. A stage replaces its folder as a whole, so a link there is refused first."""
+    from pig._outputs import OutputError, build_dir, claim_dir, resumable_dir
+
+    target = tmp_path / "elsewhere" / "novel_view"
+    target.mkdir(parents=True)
+    (target / MARKER).write_text(json.dumps({"stage": "render"}))
+    (target / "view.png").write_bytes(b"the earlier render")
+    link = tmp_path / "renders" / "novel_view"
+    link.parent.mkdir()
+    link.symlink_to(target)
+    before = _snapshot(tmp_path / "elsewhere")
+
+    with pytest.raises(OutputError, match=rf"{link}: a symbolic link \(to {target}\)"):
+        output = claim_dir(link, "render")
+        build = resumable_dir(output, "render", {}) if builder == "resumable_dir" else build_dir(output, "render")
+        with build as work:
+            (work / "view.png").write_bytes(b"the new render")
+
+    assert link.is_symlink() and link.resolve() == target and sorted(p.name for p in link.parent.iterdir()) == [
+        "novel_view"]
+    assert _snapshot(tmp_path / "elsewhere") == before

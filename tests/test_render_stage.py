@@ -1,11 +1,14 @@
 """Render and evaluate stages on a split whose cameras differ in image size (as DNA-Rendering's do)."""
+import hashlib
 import json
+import os
 import shutil
 
 import cv2
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from pig.avatar.training import fit
 from pig.data.render_store import RenderReader
@@ -76,3 +79,35 @@ def test_render_and_evaluate_a_split_with_two_image_sizes(fitted, tmp_path):
         truth = loaded.image(row.camera, int(row.frame)) * loaded.mask(row.camera, int(row.frame))[..., None]
         expected = 10 * np.log10(1.0 / np.mean((render - truth) ** 2))
         assert row.psnr == pytest.approx(expected, abs=1e-3), row.camera
+
+
+def test_render_records_the_hash_of_the_checkpoint_it_rendered_when_a_fit_replaces_it(fitted, tmp_path, monkeypatch):
+    """Sweep three, case 10: render read avatar.pt for the model, again for the loss terms and again for its SHA-256;
+    a fit renaming a new checkpoint into place in between had the old model's renders recorded under the new hash
+    (a resumed render then continued them with the new model)."""
+    import pig.avatar.checkpoint as checkpoint_module
+    from pig.data.render_store import read_manifest
+
+    capture, avatar = fitted
+    checkpoint = tmp_path / "avatar.pt"
+    shutil.copyfile(avatar, checkpoint)
+    rendered_from = hashlib.sha256(checkpoint.read_bytes()).hexdigest()
+    state = torch.load(avatar, map_location="cpu", weights_only=True)  # a later checkpoint of the fit: other weights
+    key = next(k for k, v in state["model"].items() if v.is_floating_point())
+    state["model"][key] = state["model"][key] + 0.5
+    newer = tmp_path / ".avatar.tmp.pt"
+    torch.save(state, newer)
+    build = checkpoint_module.build_avatar
+
+    def build_while_a_fit_replaces_the_file(spec):
+        if newer.exists():
+            os.replace(newer, checkpoint)
+        return build(spec)
+
+    monkeypatch.setattr(checkpoint_module, "build_avatar", build_while_a_fit_replaces_the_file)
+    renders = tmp_path / "renders" / "novel_view"
+    render_split(checkpoint, capture, "novel_view", renders, EvaluateConfig(timing_frames=1),
+                 RasterizerConfig(backend="cpu"))
+
+    assert not newer.exists() and hashlib.sha256(checkpoint.read_bytes()).hexdigest() != rendered_from
+    assert read_manifest(renders)["checkpoint_sha256"] == rendered_from

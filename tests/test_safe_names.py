@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shutil
 from pathlib import Path
 
 import pytest
+import yaml
 
 from thuman4_fixture import write_thuman4
 
@@ -15,13 +17,18 @@ from pig.data.capture import Capture
 from pig.data.dna import locate_smc
 from pig.data.raw import CaptureError
 from pig.data.thuman4 import read_calibration
-from pig.names import UnsafeName, safe_name
+from pig.names import NAME_BYTES, NAME_MAX, UnsafeName, safe_name
 from pig._cli import run_cli
 
 UNSAFE = [("../../victim", "contains a path separator"), ("/abs/victim", "contains a path separator"),
           ("a\\b", "contains a path separator"), ("..", "starts with '.'"), (".", "starts with '.'"),
           (".hidden", "starts with '.'"), ("", "is empty"), ("cam\x00", "contains a control character"),
-          ("x" * 256, "is longer than 255 bytes"), ("é" * 128, "is longer than 255 bytes"),
+          ("x" * 256, "is 256 bytes long, more than 228"), ("é" * 128, "is 256 bytes long, more than 228"),
+          ("x" * 229, "is 229 bytes long, more than 228"), ("<logs>", "contains '<' '>', which Snakemake"),
+          ("<results>", "contains '<' '>'"), ("a{x}", "contains '{' '}'"), ("a}", "contains '}'"),
+          ("a\x85b", "contains a control character"), ("a\x9bb", "contains a control character"),
+          ("abc\u202efed", "contains a bidirectional formatting character"),
+          ("a\u2066b", "contains a bidirectional formatting character"),
           (7, "must be a string"), (None, "must be a string")]
 
 
@@ -31,7 +38,8 @@ def _snapshot(folder: Path) -> dict[str, str]:
             for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-@pytest.mark.parametrize("name", ["cam00", "0", "59", "0012_09", "subject-A", "noise_0.05", "é"])
+@pytest.mark.parametrize("name", ["cam00", "0", "59", "0012_09", "subject-A", "noise_0.05", "é", "x" * 228,
+                                  "é" * 114, "subject (1) [a]", "a=b,c;d"])
 def test_plain_names_pass_unchanged(name):
     assert safe_name(name, "camera id", "calibration.json") == name
 
@@ -171,3 +179,101 @@ def test_workflow_refuses_an_escaping_subject_of_the_dataset_yaml(tmp_path):
 
     assert code != 0
     assert f"{wf.DATASET}: `subjects`: subject '../../escaped' contains a path separator" in output
+
+
+def _workflow_with_subject(tmp_path, subject: str) -> Path:
+    """The workflow's test folder (tests/test_workflow.py) whose dataset names `subject`; the raw folder `logs`
+    beside it holds another subject's data, where a subject `<logs>` would lead."""
+    import test_workflow as wf
+
+    work = tmp_path / "work dir"
+    wf._workflow_config(work, "thuman4")
+    dataset = work / wf.DATASET
+    data = yaml.safe_load(dataset.read_text())
+    data["subjects"] = [subject]
+    dataset.write_text(yaml.safe_dump(data))
+    wf._fake_thuman4_subject(work / "raw data" / "logs")
+    (work / "raw data" / "SMPLX NEUTRAL.npz").write_bytes(b"model")
+    return work
+
+
+@pytest.mark.parametrize("subject, problem", [
+    ("<logs>", "contains '<' '>', which Snakemake reads in a path"),
+    ("{subject}", "contains '{' '}', which Snakemake reads in a path"),
+    ("s" * 250, f"is 250 bytes long, more than {NAME_BYTES}"),
+])
+def test_workflow_refuses_a_subject_snakemake_rewrites_or_too_long_before_writing(tmp_path, subject, problem):
+    """Sweep three, case 3: Snakemake expands `<logs>` in rule paths, so subject `<logs>` ran preprocess on the
+    raw folder `logs` (another subject's) and wrote results/thuman4/logs/; a 250-byte subject passed the name check
+    and failed at its first job with "File name too long"."""
+    import test_workflow as wf
+
+    work = _workflow_with_subject(tmp_path, subject)
+    before = _snapshot(work)
+
+    code, output = wf.snakemake_exit(work, wf.TARGET, "--cores", "1")
+
+    assert code != 0
+    ours = {path: digest for path, digest in _snapshot(work).items() if not path.startswith(".snakemake/")}
+    assert not (work / "results").exists() and ours == before
+    shown = repr(subject) if len(subject) <= 80 else repr(subject[:77]) + "..."
+    assert f"{wf.DATASET}: `subjects`: subject {shown} {problem}" in output
+
+
+def test_the_name_bound_is_the_longest_file_name_the_workflow_builds(tmp_path, monkeypatch):
+    """Every path of the workflow's rules (outputs, logs, benchmarks, the raw folder) with each name NAME_BYTES long
+    and the other wildcards their longest values, and every temporary a stage writes beside each part (pig._io,
+    at the largest Linux pid), fits in 255 bytes; one reaches it exactly, so the bound is no tighter than needed."""
+    import pig._io as io
+
+    monkeypatch.setattr(io.os, "getpid", lambda: 2 ** 22)  # pid_max's largest value on Linux
+    rules = Path(__file__).resolve().parent.parent / "workflow" / "rules"
+    text = "\n".join(path.read_text() for path in sorted(rules.glob("*.smk")))
+    # Quoted paths of the rules and their helpers (`{wildcards.dataset}`, `{config['dataset']}` are the same names).
+    patterns = {m for m in re.findall(r'"([^" \n]*\{(?:dataset|subject|variant)\}[^" \n]*)"', text)}
+    assert len(patterns) > 20 and {"results/tables/{dataset}_{table}.html", "{subject}"} <= patterns
+    longest = {"dataset": "d" * NAME_BYTES, "subject": "s" * NAME_BYTES, "variant": "v" * NAME_BYTES,
+               "split": "novel_pose", "table": "ablation", "lod": "99", "clip": "turntable", "PREVIEW_CLIP": "preview"}
+    names = []
+    for pattern in patterns:
+        filled = re.sub(r"\{(?:wildcards\.|config\[')?(\w+)(?:'\])?\}", lambda m: longest[m.group(1)], pattern)
+        for part in filled.split("/"):
+            path = tmp_path / part
+            names += [part, io._temporary(path).name, io._temporary_dir(path).name, io._temporary_dir(path, "old").name,
+                      f".{part}.partial", f".{part}.lock"]
+    assert max(len(name.encode()) for name in names) == NAME_MAX
+
+
+def test_workflow_refuses_snakemake_syntax_in_the_preset_path_and_the_raw_root(tmp_path):
+    """A preset path with braces gave Snakemake's WildcardError naming neither; a dataset root `<logs>` silently
+    became the folder `logs` (a root with another `<name>`: "Undefined pathvar")."""
+    import test_workflow as wf
+
+    work = _workflow_with_subject(tmp_path, wf.SUBJECT)
+    wf._fake_thuman4_subject(work / "logs" / wf.SUBJECT)  # where the root `<logs>` would lead
+    shutil.copyfile(work / wf.PRESET, work / "config" / "te{st}.yaml")
+    code, output = wf.snakemake_exit(work, wf.TARGET, "--dry-run", "--config", "preset=config/te{st}.yaml")
+    assert code != 0
+    assert "config `preset` 'config/te{st}.yaml' contains '{' '}', which Snakemake reads in a path" in output
+
+    data = yaml.safe_load((work / wf.DATASET).read_text())
+    data.update(root="<logs>", body_model="raw data/SMPLX NEUTRAL.npz")
+    (work / wf.DATASET).write_text(yaml.safe_dump(data))
+    code, output = wf.snakemake_exit(work, wf.TARGET, "--dry-run")
+    assert code != 0 and "rule preprocess_capture" not in output
+    assert f"{wf.DATASET}: `root` '<logs>' contains '<' '>', which Snakemake reads in a path" in output
+
+
+def test_a_dataset_name_with_regular_expression_characters_is_its_own_table(tmp_path):
+    """The tables' rules join the dataset names into a wildcard constraint: unescaped, `thu+man4` matched only
+    `thuman4`, `thuuman4`, ..., so its own table had no rule."""
+    import test_workflow as wf
+
+    work = _workflow_with_subject(tmp_path, "logs")
+    config = yaml.safe_load((work / "config" / "config.yaml").read_text())
+    config["datasets"]["thu+man4"] = config["datasets"].pop("thuman4")
+    (work / "config" / "config.yaml").write_text(yaml.safe_dump(config))
+
+    output = wf.snakemake_run(work, "results/tables/thu+man4.csv", "--dry-run", "--config", "dataset=thu+man4")
+
+    assert wf.job_counts(output)["make_tables"] == 1

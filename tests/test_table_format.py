@@ -209,3 +209,28 @@ def test_default_target_builds_the_regions_table_and_the_reports_turntable(tmp_p
     animate = next(line for line in commands if "python -m pig animate " in line)
     assert "--output results/synthetic/subject00/pig/animate/preview --page " in animate
     assert "--seconds 2.5 --orbit-period 2.5 --size 160 160" in animate and "--motion" not in animate
+
+
+def test_markdown_shows_texts_as_they_are_in_their_own_cells():
+    """Sweep three: a `|` in a variant name split its cell, shifting that row's values under the wrong headers,
+    and HTML in a name or note was rendered as HTML. Read back by markdown-it (CommonMark with GitHub's tables,
+    raw HTML allowed as GitHub allows it), every cell holds its text and nothing became a tag."""
+    markdown_it = pytest.importorskip("markdown_it")
+    frame = _frame()
+    names = ["a|b", "<img src=x onerror=alert(1)>", "c\\|d &amp; <b>e</b>"]
+    frame["variant"] = names
+    frame["notes"] = ["<script>alert(1)</script>", "x|y (< 2000)", "black"]
+    markdown = to_markdown(frame, "t <i>|</i>")
+    assert "x\\|y (< 2000)" in markdown  # a `<` that opens no tag stays as it is
+    rendered = markdown_it.MarkdownIt("commonmark", {"html": True}).enable("table").render(markdown)
+    page = _Cells()
+    page.feed(rendered)
+    header, *rows = page.rows
+    assert [text for _, _, text in header] == ["Variant", "Novel views PSNR↑", "Novel views FID↓", "Splats"]
+    assert [[text for _, _, text in row] for row in rows] == [
+        [f"{names[0]}¹", "30.00", "12.3²", "100k"], [f"{names[1]}³", "31.26", "n/a", "12.5k"],
+        [f"{names[2]}⁴", "18.00", "n/a", "0"]]
+    assert page.notes == ["<script>alert(1)</script>", "FID over 36 images per set, biased: fewer than the evaluate "
+                          "stage's fid_min_images", "x|y (< 2000)", "black"]
+    assert "<script" not in rendered and "<img" not in rendered and "<b>" not in rendered and "<i>" not in rendered
+    assert "<h2>t &lt;i&gt;|&lt;/i&gt;</h2>" in rendered

@@ -7,6 +7,8 @@ the LPIPS term's state match. Written atomically (temporary name, then rename); 
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import pickle
 import zipfile
 from dataclasses import MISSING, fields
@@ -118,26 +120,35 @@ def _plain(value, where: str):
     raise TypeError(f"checkpoint {where}: a {type(value).__name__}; only tensors and plain Python values are stored")
 
 
-def _read(path: Path, keys: tuple[str, ...]) -> dict:
-    """The checkpoint's state, read without running code; a one-line `CheckpointError` naming the file otherwise."""
-    path = Path(path)
+def _require_file(path: Path) -> None:
     if not path.exists():
         raise FileNotFoundError(f"{path}: avatar checkpoint not found (run the fit stage: python -m pig.stages.fit)")
     if not path.is_file():
         raise CheckpointError(f"{path}: not a file; expected an avatar checkpoint of the fit stage")
+
+
+def _read(path: Path, keys: tuple[str, ...], data: bytes | None = None) -> dict:
+    """The checkpoint's state, read without running code; a one-line `CheckpointError` naming the file otherwise.
+    With `data`, the state is read from those bytes of the file (`path` names it in messages)."""
+    path = Path(path)
+    if data is None:
+        _require_file(path)
+    source = path if data is None else io.BytesIO(data)
     rerun = "delete it and re-run the fit stage (python -m pig.stages.fit)"
-    if path.stat().st_size == 0:
+    if (path.stat().st_size if data is None else len(data)) == 0:
         raise CheckpointError(f"{path}: empty file, not an avatar checkpoint; {rerun}")
     # The zip archive's CRCs catch truncation and flipped bytes that torch.load would read silently.
     try:
-        with zipfile.ZipFile(path) as archive:
+        with zipfile.ZipFile(source) as archive:
             damaged = archive.testzip()
     except (zipfile.BadZipFile, ValueError, NotImplementedError, EOFError, OverflowError) as err:
         raise CheckpointError(f"{path}: corrupt, truncated or not an avatar checkpoint ({_first_line(err)}); {rerun}") from err
     if damaged is not None:
         raise CheckpointError(f"{path}: corrupt avatar checkpoint (member {damaged} fails its CRC check); {rerun}")
+    if data is not None:
+        source.seek(0)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(source, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         raise CheckpointError(f"{path}: not loaded: it holds Python objects that only a code-running load could restore, "
                               "so it is an avatar checkpoint of an older format (version 1) or not a pig checkpoint; "
@@ -165,9 +176,24 @@ def load_avatar(path: str | Path, device: str | torch.device = "cpu", capture=No
     """The fitted `AvatarModel` of a checkpoint (avatar.pt), on `device`, in eval mode. With a loaded `Capture`,
     refuses an avatar fitted on another capture (by fingerprint) or whose training frame ids are not that
     capture's train split, before building the model."""
-    state = _read(Path(path), AVATAR_KEYS)
+    return _build(_read(Path(path), AVATAR_KEYS), Path(path), device, capture)
+
+
+def read_avatar(path: str | Path, device: str | torch.device = "cpu", capture=None) -> tuple:
+    """(model, loss-term records, SHA-256) of a checkpoint as `load_avatar` and `loss_terms` give them, from one
+    read of the file: the hash is that of the bytes the model was built from, even if a fit renames a new
+    checkpoint into place meanwhile."""
+    path = Path(path)
+    _require_file(path)
+    with open(path, "rb") as handle:
+        data = handle.read()
+    state = _read(path, AVATAR_KEYS, data)
+    return _build(state, path, device, capture), _loss_terms(state, path), hashlib.sha256(data).hexdigest()
+
+
+def _build(state: dict, path: Path, device, capture):
     if capture is not None:
-        _require_capture(Path(path), state["spec"], capture)
+        _require_capture(path, state["spec"], capture)
     try:
         model = build_avatar(_loaded_spec(state["spec"]))
     except (AttributeError, KeyError, TypeError, ValueError) as err:

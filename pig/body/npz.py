@@ -15,6 +15,7 @@ import math
 import pickle
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,16 +43,18 @@ class _ArraysOnlyUnpickler(pickle.Unpickler):
 
 
 def read_npz(path: str | Path, error: type[Exception], expected: str, keys=None,
-             pickled: tuple[str, ...] = (), max_bytes: int = MAX_MEMBER_BYTES) -> dict[str, np.ndarray]:
-    """Arrays of the npz at `path` (only `keys` if given, those present); `error(message naming the file)` on
-    anything that is not a readable npz archive. Keys in `pickled` may hold numpy arrays or scipy sparse
-    matrices stored as pickled objects; other object members are an error. A member larger than `max_bytes`
-    decompressed is refused before it is read."""
+             pickled: tuple[str, ...] = (), max_bytes: int = MAX_MEMBER_BYTES,
+             declared: Callable[[str, tuple, np.dtype], str | None] | None = None) -> dict[str, np.ndarray]:
+    """Arrays of the npz at `path` (only `keys` if given, those present, read in that order); `error(message naming
+    the file)` on anything that is not a readable npz archive. Keys in `pickled` may hold numpy arrays or scipy
+    sparse matrices stored as pickled objects; other object members are an error. A member larger than `max_bytes`
+    decompressed is refused before it is read, and so is one for which `declared(key, shape, dtype)` (its .npy
+    header's) returns what was expected instead."""
     path = Path(path)
     try:
         require_regular_file(path, error, expected)
         with path.open("rb") as handle:
-            return _read_archive(handle, path, error, expected, keys, pickled, max_bytes)
+            return _read_archive(handle, path, error, expected, keys, pickled, max_bytes, declared)
     except FileNotFoundError:
         raise error(f"{path}: file not found; expected {expected}") from None
     except OSError as err:
@@ -64,7 +67,7 @@ def read_npz_bytes(data: bytes, source: str, error: type[Exception], expected: s
     return _read_archive(io.BytesIO(data), source, error, expected, keys, (), max_bytes)
 
 
-def _read_archive(handle, source, error, expected, keys, pickled, max_bytes) -> dict[str, np.ndarray]:
+def _read_archive(handle, source, error, expected, keys, pickled, max_bytes, declared=None) -> dict[str, np.ndarray]:
     try:
         head = handle.read(4)
         if head not in ZIP_MAGIC:
@@ -75,7 +78,8 @@ def _read_archive(handle, source, error, expected, keys, pickled, max_bytes) -> 
         with zipfile.ZipFile(handle) as archive:
             members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
             wanted = members if keys is None else [k for k in keys if k in members]
-            return {key: _member(archive, members[key], key in pickled, source, error, max_bytes) for key in wanted}
+            return {key: _member(archive, members[key], key in pickled, source, error, max_bytes, declared)
+                    for key in wanted}
     except (OSError, zipfile.BadZipFile, zlib.error, EOFError) as err:
         raise error(f"{source}: not a valid npz archive (truncated or corrupt: {err}); expected {expected}") from None
 
@@ -94,7 +98,7 @@ def _check_declared(info: zipfile.ZipInfo, header_bytes: int, shape, dtype: np.d
 
 
 def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: type[Exception],
-            max_bytes: int) -> np.ndarray:
+            max_bytes: int, declared=None) -> np.ndarray:
     key = name[:-4]
     info = archive.getinfo(name)
     if info.file_size > max_bytes:
@@ -108,6 +112,9 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
             shape, _, dtype = _HEADER_READERS[version](member)
         except ValueError as err:
             raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
+        wanted = declared(key, shape, dtype) if declared is not None else None
+        if wanted is not None:
+            raise error(f"{path}: member '{key}' declares shape {shape} of {dtype}, expected {wanted}; not read")
         if not dtype.hasobject:
             _check_declared(info, member.tell(), shape, dtype, path, error, max_bytes)
             with archive.open(name) as again:  # read_array reads the header itself

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import html
 import math
+import re
 from dataclasses import dataclass
 from decimal import ROUND_HALF_UP, Decimal, localcontext
 from pathlib import Path
@@ -140,15 +141,25 @@ def _superscript(marks: list[int]) -> str:
     return ",".join(str(m) for m in marks).translate(SUPERSCRIPT).replace(",", "˒") if marks else ""
 
 
+def _markdown_text(text: str) -> str:
+    """`text` shown as is in Markdown: a `<` that would open an HTML tag and an `&` that would start an entity as
+    entities (a plain `< 2000` stays readable), a `|` not ending a table cell (backslashes escaped first, so that one
+    before it cannot undo its escape), a line break as a space."""
+    text = str(text).replace("\\", "\\\\").replace("|", "\\|")
+    text = re.sub(r"&(?=#?\w+;)", "&amp;", text)
+    return " ".join(re.sub(r"<(?=[A-Za-z/!?])", "&lt;", text).splitlines())
+
+
 def to_markdown(table: pd.DataFrame, title: str) -> str:
     """A GitHub Markdown table under `## title`: headers `group label` (e.g. `Novel views PSNR↑`), footnote
-    markers as superscripts, the footnotes as a numbered list below."""
+    markers as superscripts, the footnotes as a numbered list below. Texts are escaped (`_markdown_text`)."""
     formatted = format_table(table)
-    headers = [f"{group} {label}" if group else label for group, label in formatted.headers]
-    lines = [f"## {title}", "", "| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    lines += ["| " + " | ".join(text + _superscript(marks) for text, marks in row) + " |" for row in formatted.rows]
+    headers = [_markdown_text(f"{group} {label}" if group else label) for group, label in formatted.headers]
+    lines = [f"## {_markdown_text(title)}", "", "| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(_markdown_text(text) + _superscript(marks) for text, marks in row) + " |"
+              for row in formatted.rows]
     if formatted.notes:
-        lines += [""] + [f"{number}. {note}" for number, note in enumerate(formatted.notes, 1)]
+        lines += [""] + [f"{number}. {_markdown_text(note)}" for number, note in enumerate(formatted.notes, 1)]
     return "\n".join(lines) + "\n"
 
 

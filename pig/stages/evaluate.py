@@ -126,7 +126,7 @@ def evaluate_level(capture, split: str, level_dir: Path, cfg: EvaluateConfig, lp
         by_size.setdefault((capture.cameras[c].width, capture.cameras[c].height), []).append((c, f))
     batches = [pairs[i:i + cfg.batch_size] for pairs in by_size.values() for i in range(0, len(pairs), cfg.batch_size)]
     rows, fake_features, real_features = [], FeatureStatistics(), FeatureStatistics()
-    reader = RenderReader(level_dir)
+    reader = RenderReader(level_dir, {name: (cam.width, cam.height) for name, cam in capture.cameras.items()})
 
     def truth(view):
         mask = capture.mask(*view)

@@ -28,12 +28,12 @@ from pig.config import load_preset, load_section, resolve_device
 from pig.data.capture_record import RECORD, capture_record
 from pig.data.exr import write_exr
 from pig.data.ground_truth import GT_MESHES, SPLATS, SplatTrack
-from pig.data.render_store import ChunkEncoder, chunk_path, write_manifest
+from pig.data.render_store import FORMAT, ChunkEncoder, chunk_path, write_manifest
 from pig.field.precondition import bake_preconditioning
 from pig.progress import progress_bar
 from pig.render.api import RasterizerConfig, render_gaussians
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
-from pig._io import file_sha256, write_json, write_png
+from pig._io import write_json, write_png
 from pig._outputs import claim_dir, resumable_dir
 from pig.stages.evaluate import EvaluateConfig
 
@@ -152,7 +152,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     `cfg.encode_workers` threads. A killed run leaves its finished chunks beside `output`; a rerun with the same
     checkpoint, capture and settings renders only the missing ones. `every_view` (default `cfg.every_view`) also
     writes every view as {frame:08d}.png with alpha and depth in {frame:08d}.exr."""
-    from pig.avatar.checkpoint import load_avatar, loss_terms
+    from pig.avatar.checkpoint import read_avatar
     from pig.avatar.losses import fit_note
     from pig.data.capture import Capture
 
@@ -163,17 +163,19 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
     cameras, frames = capture.split[split]["cameras"], [int(f) for f in capture.split[split]["frames"]]
     device = resolve_device(cfg.device)
-    model = load_avatar(checkpoint, device, capture).eval()  # refuses an avatar of another capture
-    note = fit_note(loss_terms(checkpoint)["lpips"])  # passed on to the evaluate stage's summaries and the tables
+    # One read of the file: a fit renaming a new checkpoint into place meanwhile cannot pair these renders with the
+    # new one's hash. Refuses an avatar of another capture.
+    model, terms, checkpoint_sha256 = read_avatar(checkpoint, device, capture)
+    note = fit_note(terms["lpips"])  # passed on to the evaluate stage's summaries and the tables
     bake_preconditioning(model)
     renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
     track_splats = (capture_dir / GT_MESHES).is_file()  # for the evaluate stage's geometry error and drift
     levels = list(range(model.num_levels))
     chunks = [frames[i:i + cfg.chunk_frames] for i in range(0, len(frames), cfg.chunk_frames)]
     # Everything the chunks depend on: a rerun with any of it changed starts afresh.
-    settings = {"checkpoint_sha256": file_sha256(checkpoint), "capture": capture.fingerprint(), "split": split,
-                "codec": cfg.render_codec, "chunk_frames": cfg.chunk_frames, "every_view": every_view,
-                "rasterizer": asdict(rasterizer), "device": str(device)}
+    settings = {"checkpoint_sha256": checkpoint_sha256, "capture": capture.fingerprint(), "split": split,
+                "chunk_format": FORMAT, "codec": cfg.render_codec, "chunk_frames": cfg.chunk_frames,
+                "every_view": every_view, "rasterizer": asdict(rasterizer), "device": str(device)}
     with resumable_dir(output, "render", settings) as work, \
             progress_bar(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
         write_json(work / RECORD, capture_record(capture))  # the capture these renders are for (evaluate checks it)
@@ -203,7 +205,7 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
                         SplatTrack(np.asarray(chunk), np.stack(tracks[lod][0]), np.stack(tracks[lod][1])).save(
                             _track_piece(work / f"lod{lod}", chunk[0]))
                     for cam in cameras:
-                        encoder.finish_chunk(chunk_path(work / f"lod{lod}", cam, chunk[0]))
+                        encoder.finish_chunk(chunk_path(work / f"lod{lod}", cam, chunk[0]), cam, lod)
         finally:
             encoder.close()
         for lod in levels:

@@ -6,6 +6,7 @@
 import hashlib
 import json
 import os
+import re
 import shlex
 from functools import cache
 from importlib.resources import files
@@ -23,7 +24,7 @@ from pig.data.synthetic.config import SyntheticConfig
 from pig.gpu_slots import LOCAL_SLOTS_ENV, machine_devices
 from pig.job_lifetime import JOB_ENV
 from pig.metrics.weight_files import FETCH_COMMAND, loss_weight_problems
-from pig.names import safe_name
+from pig.names import safe_name, snakemake_syntax
 from pig.resources import check_rule_names, rule_resources
 
 SPLITS = ["novel_view", "novel_pose"]
@@ -48,6 +49,14 @@ def check_renamed_config_keys():
             f"config key `profile` is now `preset` (compute presets are config/presets/*.yaml, apart from "
             f"Snakemake's profiles): use --config preset={config['profile']} or `preset:` in your config file"
         )
+
+
+def check_config_paths():
+    """Refuses a preset path holding Snakemake's path syntax: the rules' commands name it, and Snakemake would read
+    `{x}` in it as a wildcard (WildcardError naming neither the preset nor the key)."""
+    problem = snakemake_syntax(str(config["preset"]))
+    if problem:
+        raise WorkflowError(f"config `preset` {config['preset']!r} {problem}; rename the preset file or its folder")
 
 
 @cache
@@ -173,7 +182,15 @@ def dataset_config(name):
     if name not in config["datasets"]:
         raise ValueError(f"unknown dataset {name!r}: configured datasets are {sorted(config['datasets'])}")
     safe_name(name, "dataset name", "config `datasets`")  # it names results/{dataset}/ and the tables
-    return load_yaml(config["datasets"][name])  # the stages' reader: ids such as 0102 stay strings
+    dataset = load_yaml(config["datasets"][name])  # the stages' reader: ids such as 0102 stay strings
+    # Rule inputs and outputs: Snakemake would expand <logs> in them to logs, another folder, or fail on {x}.
+    for key in ("root", "body_model"):
+        problem = isinstance(dataset.get(key), str) and snakemake_syntax(dataset[key])
+        if problem:
+            raise WorkflowError(
+                f"{config['datasets'][name]}: `{key}` {dataset[key]!r} {problem}; rename that folder or file"
+            )
+    return dataset
 
 
 def subjects(name, table="main"):

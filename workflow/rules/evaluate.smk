@@ -100,7 +100,7 @@ rule make_tables:
     benchmark:
         "results/tables/benchmarks/{dataset}.tsv"
     wildcard_constraints:
-        dataset="|".join(config["datasets"]),
+        dataset="|".join(map(re.escape, config["datasets"])),
     conda:
         CPU_ENV
     threads: preset_threads("make_tables")
@@ -133,7 +133,7 @@ rule make_table:
     benchmark:
         "results/tables/benchmarks/{dataset}_{table}.tsv"
     wildcard_constraints:
-        dataset="|".join(config["datasets"]),
+        dataset="|".join(map(re.escape, config["datasets"])),
         table="|".join(OTHER_TABLES),
     conda:
         CPU_ENV
