@@ -13,10 +13,11 @@ import unicodedata
 
 NAME_MAX = 255  # bytes of one path component on Linux, macOS and Windows file systems
 # The longest file name the workflow and its stages build from one name: the tables stage's temporary of a
-# dataset's ablation page, `.{dataset}_ablation.{pid}.tmp.html` (pig._io; a Linux pid has at most 7 digits,
-# pid_max <= 2**22). tests/test_safe_names.py checks this against every path of the workflow's rules.
-LONGEST_ADDITION = len(".") + len("_ablation") + len(".4194304.tmp.html")
-NAME_BYTES = NAME_MAX - LONGEST_ADDITION  # 228
+# dataset's ablation page, `.{dataset}_ablation.{pid}.{random}.tmp.html` (pig._io; a Linux pid has at most 7
+# digits, pid_max <= 2**22; the random part 8 hex digits). tests/test_safe_names.py checks this against every path of
+# the workflow's rules.
+LONGEST_ADDITION = len(".") + len("_ablation") + len(".4194304.01234567.tmp.html")
+NAME_BYTES = NAME_MAX - LONGEST_ADDITION  # 219
 # Snakemake's syntax in a path: `{wildcard}` and `<pathvar>` (snakemake.io, snakemake.pathvars).
 SNAKEMAKE_SYNTAX = "{}<>"
 # Unicode's bidirectional formatting characters: they make a name display as another (`abc\u202efed` shows as

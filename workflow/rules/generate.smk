@@ -5,7 +5,8 @@
 rule generate_capture:
     """Render the synthetic subject: multi-view video, masks, cameras, SMPL-X parameters, true meshes."""
     output:
-        directory(raw_root("synthetic", "{subject}")),
+        # Generated subjects are never nested (`subject_paths` is for real layouts): root/{subject} as a pattern.
+        directory(str(Path(dataset_config("synthetic")["root"]) / "{subject}")),
     log:
         "results/synthetic/logs/generate_{subject}.log",
     benchmark:
