@@ -7,12 +7,15 @@ The section maps rule names, and `default` for the rules it does not name, to th
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, fields
 from typing import Any
 
 from pig.config import ConfigError, from_dict
 
 DEFAULT = "default"
+# A GPU count in sbatch's --gres (`--gres=gpu:2`, `--gres=gpu:a100:2`), which must agree with the rule's gpu.
+_GRES_GPUS = re.compile(r"--gres[= ]\S*?\bgpu(?::[A-Za-z0-9_.-]+)?:(\d+)")
 
 
 @dataclass
@@ -58,6 +61,10 @@ def rule_resources(preset: dict[str, Any], rule: str) -> RuleResources:
         if getattr(resources, key) < least:
             source = rule if key in (section.get(rule) or {}) else DEFAULT
             raise ConfigError(f"{where}.{source}.{key}: expected at least {least}, found {getattr(resources, key)}")
+    gres = _GRES_GPUS.search(resources.slurm_extra or "")
+    if gres and int(gres.group(1)) != resources.gpu:  # a fit with gpu: N starts N processes (pig fit --gpus N)
+        raise ConfigError(f"{where}.{rule}: slurm_extra asks Slurm for {gres.group(1)} GPU(s) ({gres.group(0)}) and gpu "
+                          f"is {resources.gpu}; expected the same count in both")
     return resources
 
 

@@ -52,6 +52,21 @@ def test_bad_entries_name_file_rule_and_key(section, message):
         rule_resources(preset(section), "fit_avatar")
 
 
+@pytest.mark.parametrize("extra, gpu, refused", [
+    ("--gres=gpu:a100:4", 4, False), ("--gres=gpu:4 --partition=gpu", 4, False), ("--gres=gpu:a100:1", 4, True),
+    ("--gres=gpu:2", 1, True), ("--gres=shard:2,gpu:h100:2", 2, False), ("--partition=gpu", 4, False),
+])
+def test_slurm_gres_gpu_count_agrees_with_gpu(extra, gpu, refused):
+    # A fit with gpu: N runs on N GPUs (pig fit --gpus N): a --gres asking Slurm for another count is refused.
+    section = {"fit_avatar": {"gpu": gpu, "slurm_extra": extra}}
+    if refused:
+        with pytest.raises(ConfigError, match=rf"my\.yaml: section 'resources'\.fit_avatar: slurm_extra asks Slurm for "
+                                              rf"\d GPU\(s\) \(--gres=.*\) and gpu is {gpu}"):
+            rule_resources(preset(section), "fit_avatar")
+    else:
+        assert rule_resources(preset(section), "fit_avatar").gpu == gpu
+
+
 def test_unknown_rule_names_are_refused():
     check_rule_names(preset({"default": {}, "fit_avatar": {}}), PRESET_RULES)
     with pytest.raises(ConfigError, match=r"my\.yaml: section 'resources': no rule named \['fit'\] takes its resources "
@@ -117,6 +132,14 @@ def test_workflow_jobs_take_the_preset_resources(tmp_path):
     tables = job_settings(output, "make_tables")
     assert (tables["threads"], tables["mem_mb"], tables["runtime"], tables["gpu"]) == ("1", "900", "5", "0")
     assert "slurm_extra" not in tables
+
+
+def test_workflow_fit_on_several_gpus_asks_for_them_and_passes_them_to_the_fit(tmp_path):
+    code, output = dry_run(tmp_path, {"fit_avatar": {"gpu": 2, "slurm_extra": "--gres=gpu:a100:2"}})
+    assert code == 0, output[-3000:]
+    assert job_settings(output, "fit_avatar")["gpu"] == "2"
+    command = next(line for line in output.splitlines() if "python -m pig fit " in line)
+    assert "python -m pig.gpu_slots --gpus 2 " in command and " --gpus 2 2>&1" in command  # 2 slots, 2 processes
 
 
 def test_workflow_refuses_a_resources_entry_no_rule_reads(tmp_path):

@@ -46,12 +46,25 @@ class ViewBatch:
     bands: torch.Tensor | None = None  # (V, H, W) bool silhouette band, when the source computes it
 
 
+@dataclass(frozen=True)
+class ViewShare:
+    """A process's part of an iteration's views in a data-parallel fit (pig.avatar.distributed): (index of the
+    timestep among its picks, camera, place among the iteration's `total` views) of each of its views, and a digest
+    of the whole iteration's picks."""
+
+    places: tuple[tuple[int, str, int], ...]
+    total: int
+    digest: int
+
+
 @dataclass
 class Picks:
-    """What one iteration trains on: a level of detail and (timestep, cameras) pairs."""
+    """What one iteration trains on: a level of detail and (timestep, cameras) pairs; `share` where these are one
+    process's part of the iteration's picks."""
 
     lod: int
     steps: list[tuple[int, list[str]]]
+    share: ViewShare | None = None
 
 
 @dataclass
@@ -63,6 +76,7 @@ class TrainingBatch:
     timesteps: list[int]
     views: list[list[ViewBatch]]  # per timestep, grouped by image size
     wait_s: float  # how long the caller blocked for this batch
+    share: ViewShare | None = None  # Picks.share
 
     def uniform(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int, int, torch.Tensor | None] | None:
         """When every timestep has one view batch of the same size and camera count: (viewmats (K, V, 4, 4),
@@ -249,4 +263,5 @@ class TrainingBatches:
                 self._staged[ahead] = (picks, self.source.stage(picks.steps))
         picks, staged = self._staged.pop(iteration)
         views = self.source.views(staged)
-        return TrainingBatch(iteration, picks.lod, [step for step, _ in picks.steps], views, time.perf_counter() - started)
+        return TrainingBatch(iteration, picks.lod, [step for step, _ in picks.steps], views, time.perf_counter() - started,
+                             picks.share)

@@ -35,6 +35,7 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
+from pig.avatar.distributed import Parallel, ShardedSampler, SilentProgress, shard_loss
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_writer
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
@@ -183,26 +184,50 @@ class LossTerms:
     def band_radius(self, height: int) -> int:
         return band_radius(height, self.cfg.band_radius_px, self.cfg.band_reference_height)
 
+    def draw(self, views: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The LPIPS term's random choices for a loss evaluation of `views` views: the views it sees (sorted; None:
+        all, `lpips_views`) and their windows (n, 2) uniforms (None: no windows, `lpips_patches_from`)."""
+        pick = None
+        if 0 < self.cfg.lpips_views < views:
+            pick = np.sort(self._windows.choice(views, self.cfg.lpips_views, replace=False))
+        windows = self.cfg.lpips_form == "mmlphuman" and self.progress >= self.cfg.lpips_patches_from
+        return pick, self._windows.random((views if pick is None else len(pick), 2)) if windows else None
+
+    @property
+    def lpips_active(self) -> bool:
+        """Whether the LPIPS term is computed at this iteration."""
+        return self.lpips is not None and self.cfg.weight_lpips > 0 and self.progress >= self.cfg.lpips_start
+
     def __call__(self, render: torch.Tensor, images: torch.Tensor, masks: torch.Tensor, height: int,
-                 band: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """`band`: the views' silhouette band where the loader computed it (`host_band`), else from `masks`."""
+                 band: torch.Tensor | None = None, share=None) -> dict[str, torch.Tensor]:
+        """`band`: the views' silhouette band where the loader computed it (`host_band`), else from `masks`.
+        `share` (pig.avatar.distributed.LossShare): these views are a part of the iteration's in a data-parallel
+        fit; every term is then their part of the iteration's mean, with the LPIPS term's views and windows those
+        of the whole iteration's draw."""
         if band is None:
             band = boundary_band(masks, self.band_radius(height))
         terms = dict(self._l1_ssim(render, images, band))
+        if share is not None:
+            terms = {key: value * share.weight for key, value in terms.items()}
         if self.lpips is not None and self.cfg.weight_lpips > 0:
-            if self.progress < self.cfg.lpips_start:  # MMLPHuman's late start: logged as 0, nothing computed
+            if not self.lpips_active:  # MMLPHuman's late start: logged as 0, nothing computed
                 terms["lpips"] = torch.zeros((), device=render.device)
                 return terms
-            if 0 < self.cfg.lpips_views < render.shape[0]:
-                pick = _to_device(np.sort(self._windows.choice(render.shape[0], self.cfg.lpips_views, replace=False)),
-                                  render.device)
+            if share is None:
+                rows, offsets = self.draw(render.shape[0])
+                count = None
+            else:
+                rows, offsets, count = share.lpips_rows, share.lpips_offsets, share.lpips_count
+                if rows is not None and len(rows) == 0:  # none of the iteration's LPIPS views is among these
+                    terms["lpips"] = torch.zeros((), device=render.device)
+                    return terms
+            if rows is not None and len(rows) < render.shape[0]:
+                pick = _to_device(rows, render.device)
                 render, images, masks, band = (t[pick] for t in (render, images, masks, band))
             x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
-            offsets = None
-            if self.cfg.lpips_form == "mmlphuman" and self.progress >= self.cfg.lpips_patches_from:
-                offsets = _to_device(self._windows.random((x.shape[0], 2)), x.device)
+            offsets = None if offsets is None else _to_device(offsets, x.device)
             terms["lpips"] = lpips_views(self.lpips, x, y, masks, self.background, self.cfg.lpips_form, self.cfg.lpips_crop,
-                                         offsets, self.cfg.lpips_crop_sliced)
+                                         offsets, self.cfg.lpips_crop_sliced, count)
             terms["total"] = terms["total"] + self.cfg.weight_lpips * terms["lpips"]
         return terms
 
@@ -253,12 +278,15 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     (pig.avatar.fit_progress) goes to stderr every `progress_s` seconds and at each held-out evaluation, which
     also redraws train_log.png; `tensorboard` adds TensorBoard scalars under `output_dir`/tensorboard/.
 
+    One process on `device`; pig.avatar.parallel_fit.fit_parallel fits on several GPUs at once.
+
     Files of the same names in `output_dir` (OUTPUT_FILES) are replaced only when it is a fit output folder,
     or with `overwrite`.
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
     `phase(name)` wraps each part of an iteration ("sample": waiting for the iteration's views, "model",
-    "render", "loss", "backward", "step"; render and loss once per view batch, or once with `batched_render`): a hook for profilers
+    "render", "loss", "backward", "step", and "reduce", the wait for the gradients' all-reduce, in a data-parallel
+    fit; render and loss once per view batch, or once with `batched_render`): a hook for profilers
     (benchmarks/fit_gpu.py). The wait for the views is also logged (train_log.csv's data_wait_ms) and its
     mean printed at the end. `clock` (seconds) times the fit: its training seconds (train_s, what
     `fit.time_budget_s` counts; pig.avatar.training_clock), the checkpoint cadence and the plot redraws.
@@ -289,9 +317,19 @@ def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
         torch.use_deterministic_algorithms(True, warn_only=True)
 
 
+def fit_rank(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, parallel: Parallel,
+             on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager] | None,
+             progress_s: float, tensorboard: bool) -> Path:
+    """One process of a data-parallel fit (pig.avatar.parallel_fit.fit_parallel, which claimed `output_dir`); its
+    clock is `parallel.clock`, rank 0's deciding for all."""
+    return _fit(capture_dir, output_dir, preset_name, variant, parallel.device, on_iteration,
+                phase or (lambda name: nullcontext()), False, None, progress_s, tensorboard, parallel.clock, parallel)
+
+
 def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, device: torch.device,
          on_iteration: Callable[[int], None] | None, phase: Callable[[str], AbstractContextManager],
-         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool, now: Callable[[], float]) -> Path:
+         overwrite: bool, threads: int | None, progress_s: float, tensorboard: bool, now: Callable[[], float],
+         parallel: Parallel | None = None) -> Path:
     preset = load_preset(preset_name)
     overrides = variant_overrides(preset, variant)
     unknown = sorted(set(overrides) - {"avatar", "fit", "field", "precond", "rasterizer"})
@@ -307,7 +345,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     if device.type == "cpu" and fit_cfg.cpu_threads > 0:
         torch.set_num_threads(fit_cfg.cpu_threads)
     use_deterministic_kernels(device, fit_cfg.deterministic)
-    claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
+    lead = parallel is None or parallel.lead  # evaluates, logs and writes
+    if parallel is None:
+        claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
     state_path = output_dir / "checkpoint.pt"
     avatar_path = output_dir / "avatar.pt"
     log_path = output_dir / "train_log.csv"
@@ -357,12 +397,15 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     if state_path.exists():
         start, wall_before, rows = load_training_state(state_path, model, optimizers, generator, spec, settings, loss_terms,
                                                        average)
-        print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
+        if lead:
+            print(f"fit: resuming {state_path} at iteration {start}", file=sys.stderr)
         # The checkpoint's own row (a save logs one) holds the training seconds so far; older logs lack them.
         train_before = float(rows[-1].get("train_s") or wall_before) if rows else wall_before
         compile_before = float(rows[-1].get("compile_s") or 0.0) if rows else 0.0
         if grid_delay and start > grid_delay:
             model.grid.set_lambdas(grid_lambdas, keep_values=False)
+    if parallel is not None:
+        parallel.check_replicas(model, f"at iteration {start}")
 
     background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
     loss = LossTerms(fit_cfg, background, lpips, fit_cfg.compile)
@@ -380,11 +423,15 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                     loss.band_radius if fit_cfg.host_band else None) as source, \
             _matmul_precision(fit_cfg.precision), \
             closing(FitProgress(str(output_dir), fit_cfg.iterations, start, progress_s,
-                                tensorboard_writer(output_dir / TENSORBOARD_DIR) if tensorboard else None)) as report:
+                                tensorboard_writer(output_dir / TENSORBOARD_DIR) if tensorboard else None)
+                    if lead else SilentProgress()) as report:
         sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
+        if parallel is not None:  # each rank stages only its part of an iteration's views
+            sampler = ShardedSampler(sampler, parallel.rank, parallel.world)
         batches = TrainingBatches(source, sampler, fit_cfg.iterations, fit_cfg.prefetch)
         held_out = HeldOut(capture, model, source, fit_cfg.eval_frames, fit_cfg.views)
-        probe = Probe(capture, model, source, fit_cfg.probe_views, fit_cfg.probe_scale) if fit_cfg.probe_every else None
+        probe = (Probe(capture, model, source, fit_cfg.probe_views, fit_cfg.probe_scale)
+                 if fit_cfg.probe_every and lead else None)
 
         last_draw = -math.inf
 
@@ -411,10 +458,12 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             rows = [{"iteration": 0, "wall_s": 0.0, "train_s": 0.0, "lod": "", "loss": "", "l1": "", "ssim": "", "lpips": "",
                      "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""), "data_wait_ms": "",
                      "compile_s": 0.0}]
-            evaluate_held_out(rows[0], *evaluations_due(fit_cfg, 0), rows)
+            if lead:
+                evaluate_held_out(rows[0], *evaluations_due(fit_cfg, 0), rows)
             report.record(rows[0])
             report.print_line(0, 0.0)
 
+        reducer = None if parallel is None else parallel.reduce_gradients(model)
         clock = TrainingClock(wall_before, train_before, now)
         last_save = now()
         waits = []
@@ -426,6 +475,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             waits for the device: once per logged row."""
             nonlocal window, window_waits
             count = max(len(window_waits), 1)
+            if parallel is not None:
+                window = parallel.sum_terms(window)
             row = {"iteration": iteration, "wall_s": round(clock.wall(), 3), "train_s": round(clock.training(), 3),
                    "compile_s": round(compile_before + clock.excluded["compilation"], 3), "lod": lod,
                    "lpips_term": lpips_record["state"], **dict.fromkeys(EVALUATION_COLUMNS, ""),
@@ -445,7 +496,10 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         iteration = start
         for i in range(start, fit_cfg.iterations):
             trained, done = fraction_done(i)
-            if fit_cfg.time_budget_s is not None and trained >= fit_cfg.time_budget_s:
+            stop = fit_cfg.time_budget_s is not None and trained >= fit_cfg.time_budget_s
+            if parallel is not None:  # rank 0's clock decides for every rank
+                stop, done = parallel.decide(stop, done, sampler.picks(i).share.digest, i)
+            if stop:
                 break
             if grid_delay and i == grid_delay:
                 start_grid_smoothing()
@@ -459,11 +513,17 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             waits.append(batch.wait_s)
             window_waits.append(batch.wait_s)
             with clock.iteration():  # a step that compiles a graph counts as compilation, not training
-                terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
+                if parallel is None:
+                    terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
+                else:
+                    terms = shard_loss(model, batch, loss, raster, background, phase, parallel)
                 with phase("backward"):
                     for opt in optimizers:
                         opt.zero_grad(set_to_none=True)
                     terms["total"].backward()
+                if reducer is not None:
+                    with phase("reduce"):
+                        reducer.finish()
                 with phase("step"):
                     for opt in optimizers:
                         opt.step()
@@ -476,18 +536,23 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             full, probing = evaluations_due(fit_cfg, iteration)
             evaluate = full or probing
             save = iteration < fit_cfg.iterations and now() - last_save > 60 * fit_cfg.checkpoint_minutes
+            if parallel is not None:
+                save = bool(parallel.shared(save)[0])
             if evaluate or save or iteration % fit_cfg.log_every == 0:
                 row = window_row(iteration, batch.lod)
                 if not math.isfinite(row["loss"]):  # read back anyway: a diverged fit stops here, not at the end
                     raise _diverged(f"the training loss is {row['loss']}", iteration, state_path)
-                if evaluate:
+                if evaluate and lead:
                     with clock.excluding("evaluation"):
                         evaluate_held_out(row, full, probing, rows + [row])
                 rows.append(row)
                 report.record(row)
             report.step(iteration, min(fraction_done(iteration)[1], 1.0), evaluate)
             if save:
-                checkpoint(state_path, iteration, clock)
+                if parallel is not None:
+                    parallel.check_replicas(model, f"at iteration {iteration}")
+                if lead:
+                    checkpoint(state_path, iteration, clock)
                 last_save = now()
             if on_iteration is not None:
                 on_iteration(iteration)
@@ -495,22 +560,27 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             iteration = fit_cfg.iterations
         if rows[-1]["iteration"] != iteration:  # stopped by the time budget between logged rows
             rows.append(window_row(iteration, ""))
-        if rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
+        if lead and rows[-1]["heldout_psnr"] == "":  # the fit ends with an evaluation, wherever the budget stopped it
             with clock.excluding("evaluation"):
                 evaluate_held_out(rows[-1], True, probe is not None and rows[-1].get("probe_psnr", "") == "", rows)
             report.record(rows[-1])
         report.finish(iteration)
-    if waits:
+    if waits and lead:
         per_iteration = (clock.training() - train_before) / len(waits)
         print(f"fit: data wait {1000 * np.mean(waits):.1f} ms per iteration on average ({100 * np.mean(waits) / per_iteration:.1f} % "
               f"of {1000 * per_iteration:.0f} ms) over {len(waits)} iterations; {source.decoded} views decoded, "
               f"{source.hits} from the cache, at most {source.peak_held} decoded views held", file=sys.stderr)
-    if clock.excluded:
+    if clock.excluded and lead:
         print("fit: left out of the training seconds: " + ", ".join(f"{kind} {seconds:.1f} s" for kind, seconds in
                                                                     sorted(clock.excluded.items())), file=sys.stderr)
 
     if grid_delay and iteration <= grid_delay:  # stopped before the switch: store the grid under the preset's lambdas
         start_grid_smoothing()
+    if parallel is not None:
+        reducer.close()
+        parallel.check_replicas(model, f"at the end (iteration {iteration})")
+        if not lead:
+            return avatar_path
     with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
         checkpoint(avatar_path, iteration, clock)
     state_path.unlink(missing_ok=True)

@@ -3,11 +3,13 @@
 Writes avatar.pt, train_log.csv and train_log.png (redrawn at full held-out evaluations and probes) into --output,
 a progress line (iteration, loss, held-out PSNR, time left) to stderr every --progress-seconds, and with
 --tensorboard the scalars for TensorBoard; the optimisation itself is pig.avatar.training.fit (Section 3.5, Eq. 15).
+With --gpus N (N > 1) one fit runs on N GPUs at once, one process each (pig.avatar.distributed; docs/gpu.md).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
+from pig.avatar.parallel_fit import fit_parallel
 from pig.avatar.training import fit
 from pig.progress import LOG_INTERVAL_S
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
@@ -21,6 +23,10 @@ def main(argv: list[str] | None = None) -> int:
     add_preset_argument(parser, "its avatar, fit, field, precond, rasterizer and variants sections")
     parser.add_argument("--variant", default="pig", help="method variant from the preset's `variants` section")
     add_device_argument(parser)
+    parser.add_argument("--gpus", type=int, default=1, metavar="N",
+                        help="fit on N GPUs at once, one process each (cuda:0..N-1 of those visible; each computes part of "
+                             "every iteration's views); 0 or 1: one process on --device (default: 1; the workflow passes "
+                             "the fit rule's gpu resource)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads of a CPU fit (default: the preset's fit.cpu_threads; the workflow passes "
                              "the rule's threads)")
@@ -37,8 +43,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--threads must be at least 1, found {args.threads}")
     if not args.progress_seconds > 0:
         parser.error(f"--progress-seconds must be positive, found {args.progress_seconds}")
-    path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite,
-               threads=args.threads, progress_s=args.progress_seconds, tensorboard=args.tensorboard)
+    if args.gpus < 0:
+        parser.error(f"--gpus must be at least 0, found {args.gpus}")
+    if args.gpus > 1:
+        if args.device not in ("auto", "cuda"):
+            parser.error(f"--gpus {args.gpus} fits on cuda:0..{args.gpus - 1}; --device {args.device} cannot go with it")
+        path = fit_parallel(args.capture, args.output, args.preset, args.variant, args.gpus, "cuda", overwrite=args.overwrite,
+                            progress_s=args.progress_seconds, tensorboard=args.tensorboard)
+    else:
+        path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite,
+                   threads=args.threads, progress_s=args.progress_seconds, tensorboard=args.tensorboard)
     print(path)
     return 0
 

@@ -2,6 +2,8 @@
 # A killed fit resumes from {variant}/checkpoint.pt when the rule runs again. Reruns when the preset sections the
 # fit reads or the variant's overrides change (params.settings). Its progress lines (iteration, loss, held-out PSNR,
 # time left) go to the log and, through `tee`, to the console (the shell's pipefail keeps the fit's exit status).
+# A preset's `gpu: N` for the rule (N > 1) fits one avatar on N GPUs at once: the local slots give the job N devices,
+# Slurm's sbatch asks for N (--gpus), and `pig fit --gpus N` runs one process on each (docs/gpu.md).
 
 
 rule fit_avatar:
@@ -38,4 +40,5 @@ rule fit_avatar:
     shell:
         "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule fit_avatar -- "
         "python -m pig fit --capture {params.capture:q} --output {params.output:q} "
-        "--preset {params.preset:q} --variant {wildcards.variant:q} --threads {threads} 2>&1 | tee {log:q}"
+        "--preset {params.preset:q} --variant {wildcards.variant:q} --threads {threads} --gpus {resources.gpu} "
+        "2>&1 | tee {log:q}"

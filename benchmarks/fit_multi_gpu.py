@@ -1,0 +1,244 @@
+"""GPU benchmark of the data-parallel fit (`pig fit --gpus N`, pig/avatar/distributed.py): the scaling table.
+
+On one capture (benchmarks/fit_gpu.py's: a synthetic capture at the paper preset's image size), the `paper` step
+with the LPIPS term on random weights (`fit.lpips_weights: random`), on each GPU count of `--gpus` in turn, in
+one sitting: ms per iteration (timed after `--warmup` iterations, where compilation happens), peak GPU memory per
+GPU, the projected 100k-iteration time, and with `--profile-phases N` where a step goes on rank 0 (the device
+synchronised around each part: N more iterations), parted into what every rank repeats (grid, anchor solve,
+refiner, optimiser step) and what the ranks share out (decoders, body, render, loss, their backward). Each GPU count
+runs in a process of its own (a fresh device and fresh peak-memory counters). One GPU runs today's single-process
+fit; N > 1 the data-parallel one.
+
+`--parity ITERATIONS` (with `--repeats R`): R fits of that many iterations per GPU count, each ending with the
+held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick).
+
+NVLink multicast stays off in this benchmark's processes (it must on the GPU machines this project measures on):
+NCCL's NVLS collectives (NCCL_NVLS_ENABLE=0), torch's symmetric-memory multicast (TORCH_SYMM_MEM_DISABLE_MULTICAST=1)
+and NVSHMEM's (NVSHMEM_DISABLE_NVLS=1); set here, for this script and the processes it starts only (docs/gpu.md).
+
+Run on a 2-GPU machine from the repository root (`.gpu` carried), one GPU count per command so that each stays
+within a 10-minute limit (the first also makes the capture; compilation takes minutes the first time per count):
+
+    bash .gpu/device-setup.sh && export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text
+    python3 benchmarks/fit_multi_gpu.py --gpus 1 --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --gpus 2 --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --gpus 1 --parity 3000 --repeats 1   # each GPU count twice
+    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --parity 3000    # the parity table
+
+The capture is made once under --workdir and kept, with every run's records (`--collect` prints the tables of
+the runs there without running any; `--new-capture` makes the capture again).
+"""
+from __future__ import annotations
+
+import os
+
+# Before torch or NCCL start (the spawned ranks inherit them): NVLink multicast off, for this benchmark only.
+os.environ.update(NCCL_NVLS_ENABLE="0", TORCH_SYMM_MEM_DISABLE_MULTICAST="1", NVSHMEM_DISABLE_NVLS="1")
+
+import argparse
+import csv
+import functools
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+from pig.config import load_preset
+
+sys.path.insert(0, str(Path(__file__).parent))
+from fit_gpu import PhaseTimer, main as fit_gpu_main  # noqa: E402
+
+# Parts of a step that every rank computes whole, whatever the GPU count (the rest is shared out by views).
+REPLICATED = ("model.grid", "model.anchor_solve", "model.refiner", "step")
+CAPTURE = "data/capture"  # under --workdir: benchmarks/fit_gpu.py's capture, made once, kept for later commands
+
+
+class RankProbe:
+    """One rank's timing: the device synchronised where the timed window starts and ends, the phases of the
+    `profile` iterations after it, and at the last iteration a JSON record of ms/it, peak memory and phases."""
+
+    def __init__(self, out: str, warmup: int, iterations: int, profile: int, rank: int):
+        self.out, self.warmup, self.iterations, self.profile, self.rank = Path(out), warmup, iterations, profile, rank
+        self.marks: dict[int, float] = {}
+        self.timer = PhaseTimer() if profile else None
+
+    def __call__(self, iteration: int) -> None:
+        if iteration in (self.warmup, self.iterations):
+            torch.cuda.synchronize()
+            self.marks[iteration] = time.perf_counter()
+        if self.timer is not None:
+            self.timer.end_iteration()
+            self.timer.active = self.iterations <= iteration < self.iterations + self.profile
+        if iteration == self.iterations + self.profile:
+            record = {"rank": self.rank, "ms": 1000 * (self.marks[self.iterations] - self.marks[self.warmup])
+                      / (self.iterations - self.warmup), "peak_gib": torch.cuda.max_memory_allocated() / 2**30,
+                      "phases_ms": self.timer.medians_ms() if self.timer else {}}
+            (self.out / f"rank{self.rank}.json").write_text(json.dumps(record))
+
+    def phase(self, name: str):
+        return self.timer(name) if self.timer is not None else _null()
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def rank_hooks(out: str, warmup: int, iterations: int, profile: int, rank: int):
+    from pig.avatar.parallel_fit import RankHooks
+
+    probe = RankProbe(out, warmup, iterations, profile, rank)
+    return RankHooks(on_iteration=probe, phase=probe.phase)
+
+
+def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, seed: int) -> Path:
+    """The `paper` preset cut to `iterations`, LPIPS on random weights, no checkpoint inside the run."""
+    preset = load_preset("paper")
+    preset.pop("_path")
+    preset["fit"].update(iterations=iterations, eval_every=eval_every, checkpoint_minutes=10**6, lpips_weights="random",
+                         seed=seed)
+    path = workdir / f"preset_{name}.yaml"
+    path.write_text(yaml.safe_dump(preset))
+    return path
+
+
+def run_one(args) -> int:
+    """One GPU count (`--run N`), in this process: the timed fit, or the parity fit; writes its records."""
+    from pig.avatar.parallel_fit import fit_parallel
+    from pig.avatar.training import fit
+
+    gpus, workdir = args.run, args.workdir
+    capture = workdir / CAPTURE
+    if args.parity:
+        name = f"parity_{gpus}gpu_{args.tag}"
+        iterations, eval_every, hooks = args.parity, args.parity, None
+    else:
+        name = f"scaling_{gpus}gpu"
+        iterations, eval_every = args.iterations + args.profile_phases, 10**9
+        hooks = functools.partial(rank_hooks, str(workdir / name), args.warmup, args.iterations, args.profile_phases)
+    out = workdir / name
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    preset = write_preset(workdir, name, iterations, eval_every, args.seed)
+    fit_dir = out / "fit"
+    t0 = time.perf_counter()
+    if gpus == 1:
+        probe = hooks(0) if hooks else None
+        fit(capture, fit_dir, str(preset), device="cuda", on_iteration=probe.on_iteration if probe else None,
+            **({"phase": probe.phase} if probe else {}))
+    else:
+        fit_parallel(capture, fit_dir, str(preset), "pig", gpus, "cuda", rank_hooks=hooks)
+    with open(fit_dir / "train_log.csv", newline="") as file:
+        last = list(csv.DictReader(file))[-1]
+    record = {"gpus": gpus, "name": name, "fit_s": time.perf_counter() - t0, "heldout_psnr": float(last["heldout_psnr"]),
+              "train_s": float(last["train_s"]), "iterations": int(last["iteration"])}
+    (out / "run.json").write_text(json.dumps(record))
+    return 0
+
+
+def gather(workdir: Path, gpus: int) -> dict:
+    out = workdir / f"scaling_{gpus}gpu"
+    ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
+    return {"gpus": gpus, "ms": max(r["ms"] for r in ranks), "peak_gib": [r["peak_gib"] for r in ranks],
+            "phases_ms": ranks[0]["phases_ms"], **json.loads((out / "run.json").read_text())}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/pig_multi_gpu_bench"))
+    parser.add_argument("--gpus", type=int, nargs="+", default=[1, 2], help="GPU counts, in this order")
+    parser.add_argument("--frames", type=int, default=10, help="captured frames (the capture of benchmarks/fit_gpu.py)")
+    parser.add_argument("--cameras", type=int, default=8)
+    parser.add_argument("--new-capture", action="store_true",
+                        help="make the capture again (by default one in --workdir is kept, as are earlier runs' records)")
+    parser.add_argument("--iterations", type=int, default=120, help="iterations up to the end of the timed window")
+    parser.add_argument("--warmup", type=int, default=40, help="iterations before it (compilation happens there)")
+    parser.add_argument("--profile-phases", type=int, default=10, help="iterations timed per phase after the window")
+    parser.add_argument("--parity", type=int, default=0, metavar="ITERATIONS", help="parity fits of this length")
+    parser.add_argument("--repeats", type=int, default=2, help="parity fits per GPU count")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--collect", action="store_true",
+                        help="run nothing: the tables of the runs already in --workdir (one command per GPU count where "
+                             "they would not fit a time limit together)")
+    parser.add_argument("--run", type=int, default=None, help=argparse.SUPPRESS)  # one GPU count, in this process
+    parser.add_argument("--tag", default="a", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.run is not None:
+        return run_one(args)
+    available = torch.cuda.device_count()
+    if max(args.gpus) > available:
+        print(f"fit_multi_gpu: {max(args.gpus)} GPUs asked for, {available} visible", file=sys.stderr)
+        return 1
+    if not args.collect and (args.new_capture or not (args.workdir / CAPTURE).exists()):
+        fit_gpu_main(["--workdir", str((args.workdir / CAPTURE).parent), "--frames", str(args.frames), "--cameras",
+                      str(args.cameras), "--capture-only"])
+    base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed)]
+    if args.parity:
+        for repeat in range(0 if args.collect else args.repeats):
+            for gpus in args.gpus:  # alternating counts, so that a drift of the machine touches each alike
+                tag = f"{time.strftime('%H%M%S')}_{repeat}"
+                subprocess.run(base + ["--run", str(gpus), "--parity", str(args.parity), "--tag", tag], check=True)
+        runs = [json.loads(p.read_text()) for p in sorted(args.workdir.glob("parity_*gpu_*/run.json"))]
+        print(f"\nHeld-out novel-view PSNR after {args.parity} `paper` iterations (LPIPS on random weights), every "
+              f"parity run in {args.workdir}")
+        print("| GPUs | run | held-out PSNR dB | train s | wall s |")
+        print("|---|---|---|---|---|")
+        for r in sorted(runs, key=lambda r: (r["gpus"], r["name"])):
+            print(f"| {r['gpus']} | {r['name']} | {r['heldout_psnr']:.3f} | {r['train_s']:.0f} | {r['fit_s']:.0f} |")
+        for gpus in sorted({r["gpus"] for r in runs}):
+            values = [r["heldout_psnr"] for r in runs if r["gpus"] == gpus]
+            print(f"{gpus} GPU(s): mean {statistics.mean(values):.3f} dB, spread (max - min) {max(values) - min(values):.3f} "
+                  f"dB over {len(values)} run(s)")
+        return 0
+
+    results = []
+    for gpus in args.gpus:
+        if not args.collect:
+            subprocess.run(base + ["--run", str(gpus), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
+                                   "--profile-phases", str(args.profile_phases)], check=True)
+        results.append(gather(args.workdir, gpus))
+        r = results[-1]
+        print(f"{gpus} GPU(s): {r['ms']:.1f} ms/it, peak {max(r['peak_gib']):.2f} GiB per GPU", flush=True)
+    base_ms = results[0]["ms"]
+    print(f"\ndevice: {torch.cuda.get_device_name()}; `paper` preset, LPIPS on random weights; capture "
+          f"{args.cameras} cameras x {args.frames} frames; {args.iterations - args.warmup} timed iterations after "
+          f"{args.warmup}; NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1")
+    print("\n| GPUs | ms/it | speed-up | efficiency | peak GiB per GPU | 100k iterations |")
+    print("|---|---|---|---|---|---|")
+    for r in results:
+        speedup = base_ms / r["ms"]
+        print(f"| {r['gpus']} | {r['ms']:.1f} | {speedup:.2f}x | {100 * speedup / r['gpus']:.0f} % | "
+              f"{' / '.join(f'{p:.2f}' for p in r['peak_gib'])} | {r['ms'] * 1e5 / 6e4:.0f} min |")
+    if args.profile_phases:
+        names = sorted({k for r in results for k in r["phases_ms"]})
+        print(f"\nPer-phase ms on rank 0 (median of {args.profile_phases} synchronised iterations; model.* lie inside "
+              "model; `reduce` is the wait for the gradients' all-reduce after the backward)")
+        print("| phase | " + " | ".join(f"{r['gpus']} GPU" for r in results) + " |")
+        print("|---|" + "---|" * len(results))
+        for n in names:
+            print(f"| {n} | " + " | ".join(f"{r['phases_ms'].get(n, 0.0):.1f}" for r in results) + " |")
+        top = [n for n in names if not n.startswith("model.")]
+        sums = [sum(r["phases_ms"].get(n, 0.0) for n in top) for r in results]
+        replicated = [sum(r["phases_ms"].get(n, 0.0) for n in REPLICATED) for r in results]
+        print("| sum of phases | " + " | ".join(f"{s:.1f}" for s in sums) + " |")
+        print("| replicated forward + step (" + ", ".join(REPLICATED) + ") | "
+              + " | ".join(f"{s:.1f}" for s in replicated) + " |")
+        # Amdahl: the replicated part's forward and step cannot shrink (its backward, inside `backward`, neither).
+        print("\nCap from the replicated forward + step alone: " + ", ".join(
+            f"{r['gpus']} GPU: step >= {rep:.1f} ms (speed-up <= {base_ms / rep:.1f}x)" for r, rep in zip(results, replicated)
+            if rep > 0))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

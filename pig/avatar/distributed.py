@@ -1,0 +1,304 @@
+"""Data-parallel fitting: one avatar on several GPUs at once, one process per device (torch.distributed).
+
+Every process (rank) holds the whole avatar and its optimisers and computes the same iteration as one process
+would, on its part of the iteration's views:
+- The split: the iteration's (timestep, camera) pairs, in the sampler's order (timesteps, then each timestep's
+  cameras), cut into `world` consecutive runs whose lengths differ by at most one (`split_pairs`). A rank decodes,
+  poses and renders only the timesteps of its run: with the paper's 5 timesteps x 4 views, 2 ranks take 10 views
+  of 3 timesteps each and 4 ranks 5 views of 2 timesteps each. Its view loader stages only those views.
+- The math: every term of Eq. 15 is a mean over the iteration's views; a rank computes its views' part of it (their
+  sum over the iteration's count, `LossShare`), so the ranks' losses sum to the one-process loss and their
+  gradients are summed (`GradientReducer`: all-reduce in buckets, launched during the backward as the buckets
+  fill). The LPIPS term's crops: its random views and windows are drawn for the whole iteration from (seed,
+  iteration), as one process draws them, and each rank takes its own; the "mmlphuman" form's divisor (the views
+  with a mask) is summed over the ranks. The preconditioned updates (Eqs. 4-5) are linear in the gradient, so
+  every rank solves its part and the sum is the one-process solve; the optimisers then step identical gradients
+  on every rank, which keeps the weights identical (checked at the start, at each checkpoint and at the end:
+  `Parallel.check_replicas`).
+- Decisions: what reads a clock (the time budget, the learning-rate schedule's progress, the checkpoint cadence)
+  is decided by rank 0 and broadcast (`Parallel.shared`); the batch sample and the LOD come from (seed,
+  iteration) on every rank and rank 0's digest of them is checked. Rank 0 alone evaluates, logs, writes
+  checkpoints and avatar.pt; any rank resumes from a checkpoint written by any number of ranks.
+
+One process (the default) runs none of this: no all-reduce, no broadcast. The processes are started by
+pig.avatar.parallel_fit.
+"""
+from __future__ import annotations
+
+import time
+import zlib
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare
+from pig.render.api import render_timesteps
+
+DEFAULT_BUCKET_MB = 25.0  # gradients all-reduced in buckets of about this size, as DistributedDataParallel's default
+
+
+def split_pairs(count: int, world: int) -> list[range]:
+    """The pairs (positions 0..count-1) of each of `world` ranks: consecutive runs, lengths differing by at most 1."""
+    if not 1 <= world <= count:
+        raise ValueError(f"split_pairs: {count} views cannot be split over {world} processes (each needs one)")
+    return [range(r * count // world, (r + 1) * count // world) for r in range(world)]
+
+
+def picks_digest(picks: Picks) -> int:
+    """A checksum of an iteration's picks (LOD, timesteps, cameras), to check that every rank drew the same."""
+    return zlib.crc32(repr((picks.lod, picks.steps)).encode())
+
+
+def shard_picks(picks: Picks, rank: int, world: int) -> Picks:
+    """Rank `rank`'s part of an iteration's `picks` (split_pairs), with its ViewShare."""
+    pairs = [(step, cam) for step, cams in picks.steps for cam in cams]
+    mine = split_pairs(len(pairs), world)[rank]
+    steps: list[tuple[int, list[str]]] = []
+    places = []
+    for position in mine:
+        step, cam = pairs[position]
+        if not steps or steps[-1][0] != step:
+            steps.append((step, []))
+        steps[-1][1].append(cam)
+        places.append((len(steps) - 1, cam, position))
+    return Picks(picks.lod, steps, ViewShare(tuple(places), len(pairs), picks_digest(picks)))
+
+
+@dataclass(frozen=True)
+class ShardedSampler:
+    """A Sampler's picks, each cut to this rank's part."""
+
+    sampler: Sampler
+    rank: int
+    world: int
+
+    def picks(self, iteration: int) -> Picks:
+        return shard_picks(self.sampler.picks(iteration), self.rank, self.world)
+
+
+@dataclass
+class LossShare:
+    """What a loss evaluation of some of an iteration's views needs to compute their part of the iteration's loss
+    (pig.avatar.training.LossTerms): their share of the views, the rows among them that the LPIPS term sees (None:
+    all), those rows' windows, and the LPIPS term's divisor over the whole iteration."""
+
+    weight: float
+    lpips_rows: np.ndarray | None
+    lpips_offsets: np.ndarray | None
+    lpips_count: torch.Tensor | float | None
+
+
+class GradientReducer:
+    """Sums the gradients of `params` over the ranks of the default process group during the backward.
+
+    The parameters are cut into buckets of about `bucket_mb`, in reverse order (the backward's order, roughly); a
+    bucket is flattened and all-reduced asynchronously as soon as its last gradient is accumulated and the buckets
+    before it are launched, so that every rank launches the same collectives in the same order. `finish` (after
+    `backward`) launches what remains, waits, and writes the sums back. A parameter without a gradient on a rank
+    counts as zero there and gets the sum (zero where no rank had one: every rank runs the whole avatar forward,
+    so a parameter that no rank's loss reaches is one that no iteration reaches, and Adam leaves it where it is
+    from zero gradients as it does without any).
+    """
+
+    def __init__(self, params: list[torch.nn.Parameter], bucket_mb: float = DEFAULT_BUCKET_MB):
+        params = [p for p in params if p.requires_grad]
+        self.buckets: list[list[torch.nn.Parameter]] = []
+        size = 0.0
+        for p in reversed(params):
+            if (not self.buckets or size + p.numel() * p.element_size() > bucket_mb * 2**20
+                    or p.dtype != self.buckets[-1][-1].dtype):
+                self.buckets.append([])
+                size = 0.0
+            self.buckets[-1].append(p)
+            size += p.numel() * p.element_size()
+        self._bucket_of = {p: b for b, bucket in enumerate(self.buckets) for p in bucket}
+        self._hooks = [p.register_post_accumulate_grad_hook(self._ready) for p in params]
+        self._reset()
+
+    def _reset(self) -> None:
+        self._waiting = [len(bucket) for bucket in self.buckets]
+        self._launched: list[tuple[torch.Tensor, dist.Work]] = []
+
+    def _ready(self, param: torch.nn.Parameter) -> None:
+        bucket = self._bucket_of[param]
+        self._waiting[bucket] -= 1
+        while len(self._launched) < len(self.buckets) and self._waiting[len(self._launched)] == 0:
+            self._launch(len(self._launched))
+
+    def _launch(self, bucket: int) -> None:
+        flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in self.buckets[bucket]])
+        self._launched.append((flat, dist.all_reduce(flat, async_op=True)))
+
+    def finish(self) -> None:
+        """Launch the buckets not yet launched, wait for all, and give each parameter the sum of its gradients."""
+        for bucket in range(len(self._launched), len(self.buckets)):
+            self._launch(bucket)
+        for bucket, (flat, work) in zip(self.buckets, self._launched):
+            work.wait()
+            for p, part in zip(bucket, flat.split([p.numel() for p in bucket])):
+                if p.grad is None:
+                    p.grad = part.view_as(p).clone()
+                else:
+                    p.grad.copy_(part.view_as(p))
+        self._reset()
+
+    def close(self) -> None:
+        for hook in self._hooks:
+            hook.remove()
+
+
+class SilentProgress:
+    """The progress report of a rank other than 0: rank 0 reports for all."""
+
+    def record(self, row: dict) -> None:
+        pass
+
+    def step(self, iteration: int, done: float, evaluated: bool = False) -> None:
+        pass
+
+    def print_line(self, iteration: int, done: float) -> None:
+        pass
+
+    def finish(self, iteration: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass
+class Parallel:
+    """This process's place in a data-parallel fit: its rank among `world`, its device, the host-side group that
+    carries rank 0's decisions, and the clock it reads."""
+
+    rank: int
+    world: int
+    device: torch.device
+    control: object  # a gloo process group (the default group where that is gloo)
+    clock: Callable[[], float] = time.perf_counter
+    _reducer: GradientReducer | None = field(default=None, repr=False)
+
+    @property
+    def lead(self) -> bool:
+        """Rank 0: decides, evaluates, logs and writes."""
+        return self.rank == 0
+
+    def shared(self, *values: float) -> tuple[float, ...]:
+        """Rank 0's `values`, on every rank (a broadcast on the host; the others' values are ignored)."""
+        packet = torch.tensor(values, dtype=torch.float64)
+        dist.broadcast(packet, 0, group=self.control)
+        return tuple(packet.tolist())
+
+    def decide(self, stop: bool, done: float, digest: int, iteration: int) -> tuple[bool, float]:
+        """Rank 0's time-budget `stop` and run fraction `done` before an iteration, on every rank; checks that this
+        rank's picks of the iteration have rank 0's `digest` (a rank drawing otherwise would compute another)."""
+        lead_stop, lead_done, lead_digest = self.shared(float(stop), done, float(digest))
+        if int(lead_digest) != digest:
+            raise RuntimeError(f"data-parallel fit: rank {self.rank} drew other views than rank 0 at iteration "
+                               f"{iteration} (picks digest {digest} against {int(lead_digest)})")
+        return bool(lead_stop), lead_done
+
+    def sum_terms(self, terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Loss terms summed over the ranks (each rank's are its part of the iteration's), in one all-reduce."""
+        if not terms:
+            return terms
+        keys = sorted(terms)
+        stacked = torch.stack([torch.as_tensor(terms[k], dtype=torch.float32, device=self.device).reshape(()) for k in keys])
+        dist.all_reduce(stacked)
+        return dict(zip(keys, stacked.unbind()))
+
+    def sum_count(self, count: torch.Tensor) -> torch.Tensor:
+        """A count (a device scalar) summed over the ranks, on the device (no wait for the host)."""
+        total = count.to(torch.float32).reshape(1).clone()
+        dist.all_reduce(total)
+        return total[0]
+
+    def reduce_gradients(self, model: torch.nn.Module) -> GradientReducer:
+        """Install the gradient all-reduce on `model`'s parameters (once); `finish` it after each backward."""
+        if self._reducer is None:
+            self._reducer = GradientReducer(list(model.parameters()))
+        return self._reducer
+
+    def check_replicas(self, model: torch.nn.Module, when: str) -> None:
+        """Raise unless every rank holds the same weights (a checksum of their bits, gathered on the host)."""
+        digest = torch.tensor([replica_digest(model)], dtype=torch.int64)
+        gathered = [torch.zeros_like(digest) for _ in range(self.world)]
+        dist.all_gather(gathered, digest, group=self.control)
+        values = [int(t) for t in gathered]
+        if len(set(values)) != 1:
+            raise RuntimeError(f"data-parallel fit: the ranks' weights differ {when} (checksums {values}); "
+                               "the ranks no longer compute one fit")
+
+
+def replica_digest(model: torch.nn.Module) -> int:
+    """A checksum of the bits of `model`'s floating-point state (equal bits, equal checksum)."""
+    total = torch.zeros((), dtype=torch.int64)
+    widths = {1: torch.int8, 2: torch.int16, 4: torch.int32, 8: torch.int64}
+    for t in model.state_dict().values():
+        if t.is_floating_point() and t.numel():
+            bits = t.detach().contiguous().view(widths[t.element_size()]).reshape(-1).to(torch.int64)
+            weights = torch.arange(1, bits.numel() + 1, device=bits.device, dtype=torch.int64)
+            total += (bits + bits * weights).sum().cpu()
+    return int(total)
+
+
+def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tensor, phase, parallel: Parallel
+               ) -> dict[str, torch.Tensor]:
+    """This rank's part of Eq. 15 for its part of an iteration's views (`batch.share`), whose sum over the ranks is
+    pig.avatar.training.iteration_loss of the whole iteration's views in one evaluation (`fit.batched_render`).
+
+    The rank's timesteps that have as many views of one size render in one rasterizer call; the loss takes each
+    image size's views in one evaluation."""
+    share = batch.share
+    with phase("model"):
+        g = model(torch.tensor(batch.timesteps), batch.lod)
+    groups: dict[tuple[int, int, int], list[tuple[int, object]]] = {}
+    for k, step_batches in enumerate(batch.views):
+        for vb in step_batches:
+            groups.setdefault((vb.width, vb.height, len(vb.cameras)), []).append((k, vb))
+    place = {(k, cam): position for k, cam, position in share.places}
+    by_size: dict[tuple[int, int], list] = {}
+    with phase("render"):
+        for (width, height, _), members in groups.items():
+            ks = _to_device(np.array([k for k, _ in members]), g.means.device)
+            out = render_timesteps(g.means[ks], g.quats[ks], g.scales[ks], g.opacities[ks], g.sh[ks],
+                                   torch.stack([vb.viewmats for _, vb in members]), torch.stack([vb.Ks for _, vb in members]),
+                                   width, height, background, backend=raster.backend, max_pairs=raster.max_pairs)
+            for (k, vb), color in zip(members, out.color):
+                by_size.setdefault((width, height), []).append(([place[(k, c)] for c in vb.cameras], color, vb))
+    with phase("loss"):
+        pick, offsets = loss.draw(share.total) if loss.lpips_active else (None, None)
+        seen = np.arange(share.total) if pick is None else pick  # the iteration's views that the LPIPS term sees
+        count = None
+        if loss.lpips_active and loss.cfg.lpips_form == "mmlphuman":  # its divisor: the LPIPS views with a mask
+            mine = torch.zeros((), device=background.device)
+            for parts in by_size.values():
+                for positions, _, vb in parts:
+                    sees = _to_device(np.isin(positions, seen), vb.masks.device)
+                    mine = mine + (vb.masks.flatten(1).any(1) & sees).sum()
+            count = parallel.sum_count(mine)
+        elif loss.lpips_active:
+            count = float(len(seen))
+        terms: dict[str, torch.Tensor] = {}
+        for (width, height), parts in sorted(by_size.items()):
+            positions = np.concatenate([np.asarray(p) for p, _, _ in parts])
+            render = torch.cat([color for _, color, _ in parts])
+            images, masks = (torch.cat([getattr(vb, name) for _, _, vb in parts]) for name in ("images", "masks"))
+            bands = None if parts[0][2].bands is None else torch.cat([vb.bands for _, _, vb in parts])
+            rows = np.flatnonzero(np.isin(positions, seen))
+            windows = None if offsets is None else offsets[np.searchsorted(seen, positions[rows])]
+            part = loss(render, images, masks, height, bands,
+                        LossShare(len(positions) / share.total, None if pick is None else rows, windows, count))
+            for key, value in part.items():
+                terms[key] = terms.get(key, 0) + value
+    return terms
+
+
+def _to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A small host array on `device`, through pinned memory to a GPU so that the copy does not wait for the queue."""
+    tensor = torch.from_numpy(array)
+    return tensor.pin_memory().to(device, non_blocking=True) if device.type == "cuda" else tensor.to(device)
+

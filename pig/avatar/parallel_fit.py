@@ -1,0 +1,102 @@
+"""Starting a data-parallel fit (pig.avatar.distributed): one spawned process per GPU, meeting through a store that
+the starting process serves on the loopback interface; what a failed rank raised comes back here.
+
+Its own module: it starts pig.avatar.training's fit in each process, and the fit loop imports pig.avatar.distributed.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+from typing import Callable
+
+import torch
+import torch.distributed as dist
+from torch.multiprocessing import ProcessExitedException, ProcessRaisedException, start_processes
+
+from pig.avatar.distributed import Parallel
+from pig.avatar.fit_progress import TENSORBOARD_DIR
+from pig.avatar.training import OUTPUT_FILES, fit_rank
+from pig.progress import LOG_INTERVAL_S
+from pig._outputs import claim_files, output_lock
+
+FIRST_FAILURE = "first_failure"  # the store's key for the error of the first rank that failed
+DEFAULT_TIMEOUT_S = 1800.0  # a collective that waits longer fails (a rank died or hangs) instead of hanging forever
+
+
+@dataclass
+class RankHooks:
+    """What a caller (a test, a benchmark) gives each rank of a data-parallel fit: the clock the rank reads (rank
+    0's decides), a callback after each iteration and a phase timer (as pig.avatar.training.fit takes them)."""
+
+    clock: Callable[[], float] = time.perf_counter
+    on_iteration: Callable[[int], None] | None = None
+    phase: Callable[[str], object] | None = None
+
+
+def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, processes: int, device_type: str,
+                 overwrite: bool = False, progress_s: float | None = None, tensorboard: bool = False,
+                 rank_hooks: Callable[[int], RankHooks] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S) -> Path:
+    """Fit one avatar with `processes` processes, on as many CUDA devices (`device_type` "cuda": cuda:0..N-1 of
+    those visible, NCCL) or on the CPU ("cpu": gloo); returns the path of avatar.pt, which rank 0 writes.
+
+    The processes are started here (spawned) and meet through a store that this process serves on the loopback
+    interface; the first that fails stops the others, and its error is raised here. `rank_hooks(rank)` gives a rank
+    its clock and callbacks (tests, benchmarks); `timeout_s` bounds a collective's wait."""
+    if processes < 2:
+        raise ValueError(f"fit_parallel: expected 2 or more processes, found {processes}")
+    if device_type == "cuda":
+        visible = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if visible < processes:
+            raise ValueError(f"fit --gpus {processes}: only {visible} CUDA device(s) are visible "
+                             f"(CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', 'unset')!r})")
+    elif device_type != "cpu":
+        raise ValueError(f"fit_parallel: device type must be 'cuda' or 'cpu', found {device_type!r}")
+    output_dir, capture_dir = Path(output_dir), Path(capture_dir)
+    with output_lock(output_dir, "fit"):
+        # Refused here, before any process starts; rank 0 then writes these.
+        claim_files(output_dir, OUTPUT_FILES + [TENSORBOARD_DIR] * tensorboard, "fit", (capture_dir,), overwrite)
+        store = dist.TCPStore("127.0.0.1", 0, processes, is_master=True, timeout=timedelta(seconds=timeout_s),
+                              wait_for_workers=False)
+        args = (store.port, processes, device_type, str(capture_dir), str(output_dir), preset_name, variant,
+                LOG_INTERVAL_S if progress_s is None else progress_s, tensorboard, rank_hooks, timeout_s)
+        try:
+            start_processes(_rank_main, args=args, nprocs=processes, join=True, start_method="spawn")
+        except (ProcessRaisedException, ProcessExitedException) as err:
+            # The first rank that failed names the cause; the others fail after it, of the broken connection.
+            if store.check([FIRST_FAILURE]):
+                raise RuntimeError(f"fit {store.get(FIRST_FAILURE).decode()}") from None
+            if isinstance(err, ProcessExitedException):
+                raise RuntimeError(f"fit rank {err.error_index} of {processes} ended with exit code {err.exit_code}"
+                                   + (f" (signal {err.signal_name})" if err.signal_name else "")) from None
+            lines = [line for line in str(err).strip().splitlines() if line.strip()]
+            raise RuntimeError(f"fit rank {err.error_index} of {processes}: {lines[-1] if lines else err}") from None
+    return output_dir / "avatar.pt"
+
+
+def _rank_main(rank: int, port: int, world: int, device_type: str, capture_dir: str, output_dir: str, preset_name: str,
+               variant: str, progress_s: float, tensorboard: bool, rank_hooks, timeout_s: float) -> None:
+    """One rank of fit_parallel: joins the group, fits, leaves."""
+    timeout = timedelta(seconds=timeout_s)
+    store = dist.TCPStore("127.0.0.1", port, world, is_master=False, timeout=timeout)
+    if device_type == "cuda":
+        device = torch.device("cuda", rank)
+        torch.cuda.set_device(device)
+        dist.init_process_group("nccl", store=store, rank=rank, world_size=world, timeout=timeout, device_id=device)
+        control = dist.new_group(backend="gloo", timeout=timeout)
+    else:
+        device = torch.device("cpu")
+        dist.init_process_group("gloo", store=store, rank=rank, world_size=world, timeout=timeout)
+        control = dist.group.WORLD
+    hooks = rank_hooks(rank) if rank_hooks is not None else RankHooks()
+    parallel = Parallel(rank, world, device, control, hooks.clock)
+    try:
+        fit_rank(Path(capture_dir), Path(output_dir), preset_name, variant, parallel, hooks.on_iteration, hooks.phase,
+                 progress_s, tensorboard)
+    except Exception as err:  # not KeyboardInterrupt: the spawned ranks get SIGINT when the starting process ends
+        if store.add("failures", 1) == 1:  # before this process ends, so before another rank sees it gone
+            store.set(FIRST_FAILURE, f"rank {rank} of {world}: {type(err).__name__}: {err}")
+        raise  # the process ends without destroying the group: NCCL's teardown may wait on the failed collective
+    dist.destroy_process_group()

@@ -1,0 +1,331 @@
+"""Data-parallel fit (pig.avatar.distributed) on the CPU with gloo: the split of an iteration's views, 2 processes
+against 1 on one step (gradients, loss, weights), rank 0's clock deciding for all, resume across process counts."""
+import csv
+import functools
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from contextlib import nullcontext
+from dataclasses import asdict, replace
+from datetime import timedelta
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.distributed as dist
+from torch.multiprocessing import start_processes
+
+from pig.avatar.batches import Picks, Sampler, TrainingBatches, ViewSource
+from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
+from pig.avatar.config import AvatarConfig
+from pig.avatar.distributed import GradientReducer, Parallel, ShardedSampler, shard_loss, shard_picks, split_pairs
+from pig.avatar.parallel_fit import RankHooks, fit_parallel
+from pig.avatar.fit_config import FitConfig
+from pig.avatar.losses import lpips_term
+from pig.avatar.training import LossTerms, fit, iteration_loss
+from pig.config import load_preset, load_section
+from pig.data.capture import Capture
+from pig.field.latent_grid import FieldConfig
+from pig.field.precondition import PrecondConfig
+from pig.render.api import RasterizerConfig
+from preset_files import write_test_preset
+
+WORLD = 2
+# The one step of the parity test: 3 timesteps x 2 views, so that one timestep's views fall to both ranks; the LPIPS
+# term (random weights) in MMLPHuman's form, on 4 of the 6 views drawn at random, with random windows.
+STEP_FIT = dict(timesteps=3, views=2, weight_lpips=2.0, lpips_weights="random", lpips_net="alex", lpips_form="mmlphuman",
+                lpips_crop=32, lpips_views=4, lpips_patches_from=0.0, lpips_start=0.0)
+
+
+@pytest.mark.parametrize("count", range(1, 25))
+def test_split_pairs_disjoint_cover_and_balanced(count):
+    for world in range(1, min(count, 8) + 1):
+        parts = split_pairs(count, world)
+        assert sorted(p for part in parts for p in part) == list(range(count))  # disjoint, and the whole batch
+        assert max(map(len, parts)) - min(map(len, parts)) <= 1
+    with pytest.raises(ValueError, match="cannot be split"):
+        split_pairs(count, count + 1)
+
+
+def test_shard_picks_pose_only_the_timesteps_their_views_need():
+    cameras = [f"c{i}" for i in range(16)]
+    picks = Picks(2, [(t, cameras[t:t + 4]) for t in (7, 3, 9, 0, 5)])  # the paper's 5 timesteps x 4 views
+    pairs = [(t, c) for t, cams in picks.steps for c in cams]
+    for world, timesteps in ((1, [5]), (2, [3, 3]), (4, [2, 2, 2, 2])):
+        shares = [shard_picks(picks, r, world) for r in range(world)]
+        assert [len(s.steps) for s in shares] == timesteps
+        assert len({s.share.digest for s in shares}) == 1 and all(s.lod == 2 and s.share.total == 20 for s in shares)
+        mine = [(s.steps[k][0], cam, position) for s in shares for k, cam, position in s.share.places]
+        assert [(t, c) for t, c, _ in mine] == pairs and [p for *_, p in mine] == list(range(20))
+        for s in shares:  # each place names a view of the rank's own picks
+            assert all(cam in s.steps[k][1] for k, cam, _ in s.share.places)
+
+
+def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, device: str = "cpu"):
+    """One iteration (0, at progress 0.5) of the preset's fit on `device`: loss terms, gradients, the weights after
+    the step, and the rank's share of the views; through the fit's functions, the model built as the fit builds it."""
+    preset = load_preset(preset_path)
+    fit_cfg = load_section(preset, "fit", FitConfig)
+    precond = load_section(preset, "precond", PrecondConfig)
+    capture = Capture.load(capture_dir, cache_mb=0)
+    train = capture.split["train"]
+    spec = {"avatar": asdict(load_section(preset, "avatar", AvatarConfig)), "field": asdict(load_section(preset, "field", FieldConfig)),
+            "precond": asdict(precond), "body_model_npz": body_model_npz(capture_dir / "body_model.npz"),
+            "params": asdict(capture.params.select([capture.frames.index(f) for f in train["frames"]])),
+            "frame_ids": [int(f) for f in train["frames"]], "variant": "pig"}
+    torch.manual_seed(0)
+    model = build_avatar(spec).to(device)
+    optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond)
+    background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
+    loss = LossTerms(fit_cfg, background, lpips_term(fit_cfg, device)[0], False)
+    loss.at(0, 0.5)
+    raster = load_section(preset, "rasterizer", RasterizerConfig)
+    seen_by = tuple(tuple(c for c in train["cameras"] if capture.has(c, f)) for f in train["frames"])
+    sampler = Sampler(fit_cfg.seed, model.num_levels, seen_by, fit_cfg.timesteps, fit_cfg.views)
+    if parallel is not None:
+        sampler = ShardedSampler(sampler, parallel.rank, parallel.world)
+    with ViewSource(capture, train["frames"], device, 0, 1) as source:
+        batch = TrainingBatches(source, sampler, 1, 0).get(0)
+    phase = lambda name: nullcontext()
+    if parallel is None:
+        terms = iteration_loss(model, batch, loss, raster, background, True, phase)
+    else:
+        reducer = GradientReducer(list(model.parameters()), bucket_mb=0.01)  # several buckets
+        terms = shard_loss(model, batch, loss, raster, background, phase, parallel)
+    terms["total"].backward()
+    if parallel is not None:
+        reducer.finish()
+        terms = parallel.sum_terms(terms)
+    grads = {name: p.grad.cpu() for name, p in model.named_parameters()}
+    for opt in optimizers:
+        opt.step()
+    return ({k: v.detach().cpu() for k, v in terms.items()}, grads, {k: v.detach().cpu() for k, v in model.state_dict().items()},
+            batch.share)
+
+
+def _step_rank(rank: int, port: int, capture_dir: str, preset_path: str, out: str, device_type: str = "cpu") -> None:
+    """One rank of the parity step: gloo on the CPU, or NCCL on cuda:rank with gloo for the decisions (as a fit)."""
+    timeout = timedelta(seconds=120)
+    store = dist.TCPStore("127.0.0.1", port, WORLD, is_master=False, timeout=timeout)
+    device = torch.device("cuda", rank) if device_type == "cuda" else torch.device("cpu")
+    if device_type == "cuda":
+        torch.cuda.set_device(device)
+        dist.init_process_group("nccl", store=store, rank=rank, world_size=WORLD, timeout=timeout, device_id=device)
+        control = dist.new_group(backend="gloo", timeout=timeout)
+    else:
+        dist.init_process_group("gloo", store=store, rank=rank, world_size=WORLD, timeout=timeout)
+        control = dist.group.WORLD
+    torch.set_num_threads(1)
+    try:
+        parallel = Parallel(rank, WORLD, device, control)
+        result = _one_step(Path(capture_dir), preset_path, parallel, str(device))
+        # Rank 0's decisions reach every rank; a rank whose picks differ from rank 0's is stopped.
+        decided = parallel.decide(rank == 1, 0.25 * (rank + 1), result[3].digest, 0)
+        try:
+            parallel.decide(False, 0.0, result[3].digest + rank, 1)
+            refused = ""
+        except RuntimeError as err:
+            refused = str(err)
+        torch.save(result[:3] + (asdict(result[3]), decided, refused), Path(out) / f"rank{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_two_gloo_processes_compute_the_one_process_step(small_capture, tmp_path):
+    preset = write_test_preset(tmp_path, **STEP_FIT)
+    store = dist.TCPStore("127.0.0.1", 0, WORLD, is_master=True, wait_for_workers=False)
+    start_processes(_step_rank, args=(store.port, str(small_capture), preset, str(tmp_path)), nprocs=WORLD,
+                    start_method="spawn")
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(WORLD)]
+    terms, grads, weights, _ = _one_step(small_capture, preset, None)
+
+    places = [tuple(place[2] for place in share["places"]) for *_, share, _, _ in ranks]
+    assert [decided for *_, decided, _ in ranks] == [(False, 0.25)] * 2  # rank 0's, whatever rank 1 measured
+    assert ranks[0][5] == "" and "rank 1 drew other views than rank 0 at iteration 1" in ranks[1][5]
+    assert sorted(places[0] + places[1]) == list(range(6)) and all(places)  # disjoint, together the whole batch
+    assert {k: float(v) for k, v in ranks[0][0].items()} == {k: float(v) for k, v in ranks[1][0].items()}
+    assert set(ranks[0][0]) == set(terms) and terms["lpips"] > 0
+    for key in terms:  # the iteration's loss: each rank's part, summed
+        torch.testing.assert_close(ranks[0][0][key], terms[key], rtol=1e-5, atol=1e-7)
+    # The summed gradients against the one-process ones, within float32 rounding: each rank sums its own views'
+    # contributions and the two sums are added, where one process adds them in another order, and the LPIPS
+    # network and the renders run on batches of other sizes (other blockings of their sums). Each such difference is
+    # a few units in the last place (2^-24 ~ 6e-8) of the terms summed; through the backward they added up to at
+    # most 2.8e-6 of a tensor's largest gradient (measured, CPU). Tolerance 3e-5 of it: 10x that, while a view lost
+    # or counted twice (a sixth of the batch) moves gradients by ~1e-1 of it.
+    for name, reference in grads.items():
+        assert torch.equal(ranks[0][1][name], ranks[1][1][name]), name
+        scale = reference.abs().max().item()
+        torch.testing.assert_close(ranks[0][1][name], reference, rtol=0, atol=3e-5 * scale, msg=name)
+    assert any(grads[name].abs().max() > 0 for name in grads if name.startswith("refiner"))
+    for name, value in weights.items():  # after the step: identical on every rank, and the one-process step's
+        assert torch.equal(ranks[0][2][name], ranks[1][2][name]), name
+        if value.is_floating_point():
+            torch.testing.assert_close(ranks[0][2][name], value, rtol=1e-4, atol=1e-6, msg=name)
+
+
+class _FakeClock:
+    """A clock that advances `step_s` seconds at each reading (no real time is read)."""
+
+    def __init__(self, step_s: float):
+        self.now, self.step_s = 0.0, step_s
+
+    def __call__(self) -> float:
+        self.now += self.step_s
+        return self.now
+
+
+class _Record:
+    """Writes the iterations a rank finished to `folder`/rank{r}.txt."""
+
+    def __init__(self, folder: str, rank: int):
+        self.path = Path(folder) / f"rank{rank}.txt"
+
+    def __call__(self, iteration: int) -> None:
+        with open(self.path, "a") as file:
+            file.write(f"{iteration}\n")
+
+
+def _skewed(folder: str, rank: int) -> RankHooks:
+    # Rank 1's clock runs 400 times as fast: on its own it would stop at once and save at every iteration.
+    return RankHooks(clock=_FakeClock(0.25 if rank == 0 else 100.0), on_iteration=_Record(folder, rank))
+
+
+def _iterations(folder: Path, rank: int) -> list[int]:
+    return [int(line) for line in (folder / f"rank{rank}.txt").read_text().split()]
+
+
+def _log(output: Path) -> list[dict]:
+    with open(output / "train_log.csv", newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def test_rank_zero_clock_decides_budget_schedule_and_checkpoints(small_capture, tmp_path):
+    # A time budget with a decaying learning rate (the run's progress is its time fraction), a checkpoint each
+    # 2 s of rank 0's clock: were any decided by rank 1's own clock, the ranks would run different iterations or
+    # step different rates (their weights differ: the fit's replica check raises) or meet at different collectives.
+    preset = write_test_preset(tmp_path, iterations=1000, time_budget_s=6.0, lr_final=0.1, checkpoint_minutes=2 / 60,
+                               eval_every=10**6, log_every=1)
+    fit_parallel(small_capture, tmp_path / "out", preset, "pig", WORLD, "cpu", progress_s=1e6,
+                 rank_hooks=functools.partial(_skewed, str(tmp_path)), timeout_s=120)
+    done = [_iterations(tmp_path, r) for r in range(WORLD)]
+    assert done[0] == done[1] and 2 < len(done[0]) < 1000  # stopped by the budget, on rank 0's clock, together
+    rows = _log(tmp_path / "out")
+    assert int(rows[-1]["iteration"]) == done[0][-1] and (tmp_path / "out" / "avatar.pt").exists()
+    assert not (tmp_path / "out" / "checkpoint.pt").exists()
+
+
+class Killed(Exception):
+    pass
+
+
+class _Kill:
+    """Stops the fit after iteration `at`, as a kill would (the checkpoint of that iteration is written)."""
+
+    def __init__(self, at: int):
+        self.at = at
+
+    def __call__(self, iteration: int) -> None:
+        if iteration == self.at:
+            raise Killed(f"killed after iteration {iteration}")
+
+
+def _kill_rank0(at: int, rank: int) -> RankHooks:
+    return RankHooks(on_iteration=_Kill(at) if rank == 0 else None)
+
+
+def test_resume_across_process_counts(small_capture, tmp_path):
+    # One process killed after iteration 2, two resume it and are killed after 4, one finishes at 6: each resume
+    # continues the same log from the last checkpoint (written after every iteration here).
+    preset = write_test_preset(tmp_path, iterations=6, eval_every=10**6, checkpoint_minutes=0.0, log_every=1)
+    out = tmp_path / "out"
+    with pytest.raises(Killed):
+        fit(small_capture, out, preset, on_iteration=_Kill(2), progress_s=1e6)
+    with pytest.raises(RuntimeError, match="rank 0 of 2"):
+        fit_parallel(small_capture, out, preset, "pig", WORLD, "cpu", progress_s=1e6,
+                     rank_hooks=functools.partial(_kill_rank0, 4), timeout_s=120)
+    assert [int(r["iteration"]) for r in _log(out)] == [0, 1, 2, 3, 4]  # the last checkpoint's rows
+    fit(small_capture, out, preset, progress_s=1e6)
+    assert [int(r["iteration"]) for r in _log(out)] == list(range(7))
+    assert not (out / "checkpoint.pt").exists() and (out / "avatar.pt").exists()
+
+
+class _WritePid:
+    """Writes this rank's process id to `folder`/pid{rank} after its first iteration."""
+
+    def __init__(self, folder: str, rank: int):
+        self.path = Path(folder) / f"pid{rank}"
+
+    def __call__(self, iteration: int) -> None:
+        if not self.path.exists():
+            self.path.write_text(str(os.getpid()))
+
+
+def _pid_hooks(folder: str, rank: int) -> RankHooks:
+    return RankHooks(on_iteration=_WritePid(folder, rank))
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as file:
+            return file.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return False
+
+
+def _wait_until(condition, limit_s: float) -> bool:
+    """Polls `condition` until it holds or `limit_s` passed (a limit, not a measurement)."""
+    end = time.monotonic() + limit_s
+    while not condition():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.2)
+    return True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_ranks_end_with_the_process_that_started_them(small_capture, tmp_path):
+    # The starting process killed (SIGKILL: no handler runs) mid-fit: its ranks must not fit on as orphans, holding
+    # the devices while a rerun takes the output folder (torch's spawn asks the kernel to send them SIGINT then).
+    preset = write_test_preset(tmp_path, iterations=10**6, eval_every=10**6)
+    script = tmp_path / "start.py"
+    script.write_text(textwrap.dedent(f"""
+        import functools, sys
+        sys.path[:0] = {[str(Path(__file__).parent), *sys.path]!r}
+        from test_fit_parallel import _pid_hooks
+        from pig.avatar.parallel_fit import fit_parallel
+        if __name__ == "__main__":
+            fit_parallel({str(small_capture)!r}, {str(tmp_path / "out")!r}, {preset!r}, "pig", 2, "cpu", progress_s=1e6,
+                         rank_hooks=functools.partial(_pid_hooks, {str(tmp_path)!r}))
+    """))
+    starter = subprocess.Popen([sys.executable, str(script)], env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    pids = [tmp_path / f"pid{rank}" for rank in range(WORLD)]
+    try:
+        assert _wait_until(lambda: all(p.exists() for p in pids) or starter.poll() is not None, 300)
+        assert starter.poll() is None, "the fit ended before it was killed"
+        ranks = [int(p.read_text()) for p in pids]
+        starter.kill()
+        starter.wait()
+        assert _wait_until(lambda: not any(map(_running, ranks)), 60), "a rank outlived the process that started it"
+    finally:
+        if starter.poll() is None:
+            starter.kill()
+        for p in pids:  # what this test started, should it have outlived the test
+            if p.exists() and _running(int(p.read_text())):
+                os.kill(int(p.read_text()), signal.SIGKILL)
+
+
+def test_fit_stage_gpus_option(small_capture, tmp_path, capsys):
+    from pig.stages.fit import main
+
+    with pytest.raises(SystemExit):
+        main(["--capture", str(small_capture), "--output", str(tmp_path / "o"), "--gpus", "2", "--device", "cpu"])
+    assert "--device cpu cannot go with it" in capsys.readouterr().err
+    if torch.cuda.device_count() < 2:
+        with pytest.raises(ValueError, match="CUDA device"):
+            main(["--capture", str(small_capture), "--output", str(tmp_path / "o"), "--gpus", "2"])
+        assert not (tmp_path / "o").exists()  # refused before anything was written
