@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 
 from pig.body.npz import read_npz
-from pig.body.params import THUMAN_KEYS, ParamsError, SmplxParams, from_thuman
+from pig.body.params import ParamsError, SmplxParams
 from pig.data.frame_sources import FramesCapture, camera_frames
 from pig.data.raw import CaptureError, RawCamera
-from pig.data.thuman4 import camera_entry
+from pig.data.thuman4 import camera_entry, read_params
 from pig.inputs import require_regular_file
 from pig.names import safe_name
 
@@ -137,13 +137,7 @@ class ActorsHQCapture(FramesCapture):
             raise CaptureError(f"ActorsHQ sequence folder {root} not found: put the sequence there as {LAYOUT}")
         folder = scale_folder(self.source, scale)
         self.cameras = read_calibration(folder / CALIBRATION)
-        path = params_file(folder)
-        try:
-            arrays = read_npz(path, ParamsError, "SMPL-X parameters (betas, global_orient, transl, body_pose, ...)",
-                              keys=THUMAN_KEYS)
-            self.params: SmplxParams = from_thuman(arrays, str(path))
-        except ParamsError as err:
-            raise CaptureError(str(err)) from None
+        self.params: SmplxParams = read_params(params_file(folder))
         self.frames = list(range(self.params.num_frames))
         count = len(self.frames)
         images, masks = {}, {}

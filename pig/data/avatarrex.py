@@ -12,12 +12,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pig.body.npz import read_npz
-from pig.body.params import THUMAN_KEYS, ParamsError, SmplxParams, from_thuman
+from pig.body.params import SmplxParams
 from pig.data.actorshq import frame_count
 from pig.data.frame_sources import FramesCapture, camera_frames, read_missing_list
 from pig.data.raw import CaptureError
-from pig.data.thuman4 import read_calibration
+from pig.data.thuman4 import read_calibration, read_params
 
 CALIBRATION = "calibration_full.json"
 PARAMS = "smpl_params.npz"
@@ -53,13 +52,7 @@ class AvatarReXCapture(FramesCapture):
         self.source = Path(root)
         required_files(self.source)
         self.cameras = read_calibration(self.source / CALIBRATION, dist_optional=True)
-        path = self.source / PARAMS
-        try:
-            arrays = read_npz(path, ParamsError, "SMPL-X parameters (betas, global_orient, transl, body_pose, ...)",
-                              keys=THUMAN_KEYS)
-            self.params: SmplxParams = from_thuman(arrays, str(path))
-        except ParamsError as err:
-            raise CaptureError(str(err)) from None
+        self.params: SmplxParams = read_params(self.source / PARAMS)
         self.frames = list(range(self.params.num_frames))
         count = len(self.frames)
         images, masks = {}, {}

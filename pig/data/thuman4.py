@@ -51,12 +51,7 @@ class Thuman4Capture:
         required_files(self.source)
         self.cameras = read_calibration(self.source / CALIBRATION)
         self._check_camera_folders()
-        params_path = self.source / PARAMS
-        try:
-            arrays = read_npz(params_path, ParamsError, PARAMS_EXPECTED, keys=THUMAN_KEYS)
-            self.params: SmplxParams = from_thuman(arrays, str(params_path))
-        except ParamsError as err:
-            raise CaptureError(str(err)) from None
+        self.params: SmplxParams = read_params(self.source / PARAMS)
         self.frames = list(range(self.params.num_frames))
         missing = {kind: self._read_missing(kind) for kind in MISSING_LISTS}
         listed = missing["images"] | missing["masks"]  # a missing image also has no usable mask
@@ -169,6 +164,15 @@ class Thuman4Capture:
                                    f"from {CALIBRATION}, found {line!r}")
             pairs.add((parts[-2], int(stem)))
         return pairs
+
+
+def read_params(path: Path) -> SmplxParams:
+    """SMPL-X parameters in THuman4's `smpl_params.npz` form (also ActorsHQ's and AvatarReX's); a bad file is a
+    CaptureError naming it."""
+    try:
+        return from_thuman(read_npz(path, ParamsError, PARAMS_EXPECTED, keys=THUMAN_KEYS), str(path))
+    except ParamsError as err:
+        raise CaptureError(str(err)) from None
 
 
 def read_calibration(path: Path, dist_optional: bool = False) -> dict[str, RawCamera]:

@@ -13,7 +13,11 @@
 set -u
 W=/tmp/evrate F=${2:-0.1} I=${3:-3000} D=$OUT/eval_rate
 [ -d /tmp/site/gsplat ] && [ -d /tmp/text ] || bash .gpu/device-setup.sh >/dev/null
-export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
+# Run from a copy: a later call re-sends the working tree and replaces its folders under a running job (run26).
+SRC=/tmp/run39_src
+if [ "$1" != w ]; then rm -rf $SRC && cp -r . $SRC; fi
+cd $SRC
+export PYTHONPATH=/tmp/site:$SRC TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
 mkdir -p $D $W
 COMMON="--workdir $W --upscale 5 --workers 16 --codec png --encode-workers 14 --batch-size 16"
 wait_run() {  # SECONDS
