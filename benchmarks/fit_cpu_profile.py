@@ -32,8 +32,8 @@ MODULES = {"LatentGrid": "model.grid", "PreconditionedTensor": "model.anchor_sol
            "AnchorDecoder": "model.decoders", "BodyRefiner": "model.refiner"}
 # Backward autograd nodes by substring of their name -> part (first match wins); the rest is "backward.other".
 BACKWARD_PARTS = [("_BandComposite", "backward.compositor"), ("Solve", "backward.solves"),
-                  ("Addmm", "backward.decoders.matmul"), ("Mm", "backward.decoders.matmul"),
-                  ("Index", "backward.gathers"), ("Gather", "backward.gathers")]
+                  ("GridSampler", "backward.grid_lookup"), ("Addmm", "backward.matmuls"), ("Mm", "backward.matmuls"),
+                  ("Convolution", "backward.loss_blur"), ("Index", "backward.gathers"), ("Gather", "backward.gathers")]
 
 
 class CpuPhases:
