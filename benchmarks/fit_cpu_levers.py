@@ -75,6 +75,7 @@ def lever_fill(capture: Path, steps: int, rounds: int) -> None:
 def _module(path: Path, name: str):
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
 
@@ -83,7 +84,10 @@ def lever_gathers(capture_dir: Path, avatar: Path, against: Path, rounds: int) -
     import pig.render.cpu_compositor as new_compositor
     import pig.render.projection as new_projection
     from pig.avatar.checkpoint import load_avatar
+    from pig.avatar.training import use_deterministic_kernels
     from pig.data.capture import Capture
+
+    use_deterministic_kernels(torch.device("cpu"), False)  # the kernels a CPU fit runs
 
     old_projection = _module(against / "pig/render/projection.py", "projection_before")
     source = (against / "pig/render/cpu_compositor.py").read_text().replace("from .projection", "from pig.render.projection")
