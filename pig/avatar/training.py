@@ -283,9 +283,9 @@ def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
     On the CPU the one kernel that differed between runs (measured: benchmarks/NOTES.md, "Fit", "Bit-identical CPU fits") is
     index_put_ with accumulate, the backward of advanced indexing (the transport's vertex gathers): with more than
     one thread it adds into shared vertices with atomics, in whatever order the threads reach them; in
-    deterministic mode it adds serially. Deterministic mode also fills every new tensor with NaN before an op writes
-    it (a guard against reading uninitialised memory, which no kernel here does): on the CPU that fill is left out,
-    ~5 % of a step, the same weights (benchmarks/NOTES.md, "The first run")."""
+    deterministic mode it adds serially. Deterministic mode also fills many ops' new outputs with NaN before the op
+    writes them (a guard against kernels that read uninitialised memory): on the CPU that fill is left out, ~0.95x a
+    step with the same weights (benchmarks/NOTES.md, "The first run"; tests/test_reproducible.py checks them)."""
     if device.type == "cpu":
         torch.use_deterministic_algorithms(True)
         torch.utils.deterministic.fill_uninitialized_memory = False

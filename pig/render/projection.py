@@ -55,7 +55,7 @@ def project_splats(
 
     # Gather before projecting: invalid pairs (behind the camera) never enter the graph, so their
     # divisions by z cannot put NaN into the backward pass.
-    # index_select gathers: several times faster than advanced indexing on the CPU, the same values.
+    # index_select gathers: the values of advanced indexing, cheaper under the CPU fit's deterministic kernels.
     covars, _ = _quat_scale_to_covar_preci(_take(quats, gid), _take(scales, gid), compute_preci=False)
     means_c, covars_c = _world_to_cam(_take(means, gid)[:, None], covars[:, None], _take(viewmats, cam)[:, None])
     means2d, cov2d = _persp_proj(means_c[:, 0], covars_c[:, 0], _take(Ks, cam), width, height)
