@@ -293,6 +293,7 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     """
     callers_threads = torch.get_num_threads()
     callers_deterministic = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    callers_fill = torch.utils.deterministic.fill_uninitialized_memory
     try:
         with output_lock(Path(output_dir), "fit"):  # two fits into one folder: the second is refused, naming the first
             return _fit(Path(capture_dir), Path(output_dir), preset_name, variant,
@@ -301,6 +302,7 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
     finally:
         torch.set_num_threads(callers_threads)
         torch.use_deterministic_algorithms(callers_deterministic[0], warn_only=callers_deterministic[1])
+        torch.utils.deterministic.fill_uninitialized_memory = callers_fill
 
 
 def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
@@ -309,9 +311,12 @@ def use_deterministic_kernels(device: torch.device, requested: bool) -> None:
     On the CPU the one kernel that differed between runs (measured: benchmarks/NOTES.md, "Fit", "Bit-identical CPU fits") is
     index_put_ with accumulate, the backward of advanced indexing (the transport's vertex gathers): with more than
     one thread it adds into shared vertices with atomics, in whatever order the threads reach them; in
-    deterministic mode it adds serially."""
+    deterministic mode it adds serially. Deterministic mode also fills many ops' new outputs with NaN before the op
+    writes them (a guard against kernels that read uninitialised memory): on the CPU that fill is left out, ~0.95x a
+    step with the same weights (benchmarks/NOTES.md, "The first run"; tests/test_reproducible.py checks them)."""
     if device.type == "cpu":
         torch.use_deterministic_algorithms(True)
+        torch.utils.deterministic.fill_uninitialized_memory = False
     elif requested:
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # cuBLAS's deterministic workspace
         torch.use_deterministic_algorithms(True, warn_only=True)

@@ -66,23 +66,23 @@ def row_spans(geometry: Tensor, radii: Tensor, camera: Tensor, width: int, heigh
     rows_per_splat = (y1 - y0 + 1).clamp(min=0)
     splat = torch.repeat_interleave(torch.arange(len(g), device=g.device), rows_per_splat)
     first = torch.cumsum(rows_per_splat, 0) - rows_per_splat
-    image_row = y0[splat] + torch.arange(len(splat), device=g.device) - first[splat]
-    dy = my[splat] - (image_row.to(g.dtype) + 0.5)
+    image_row = _take(y0, splat) + torch.arange(len(splat), device=g.device) - _take(first, splat)
+    dy = _take(my, splat) - (image_row.to(g.dtype) + 0.5)
 
-    a, b, c = (g[:, k].double()[splat] for k in (2, 3, 4))
+    a, b, c = (_take(g[:, k].double(), splat) for k in (2, 3, 4))
     dy64 = dy.double()
-    limit = torch.log(o.double()[splat] / ALPHA_THRESHOLD)
+    limit = torch.log(_take(o.double(), splat) / ALPHA_THRESHOLD)
     disc = (b * dy64) ** 2 - a * (c * dy64 * dy64 - 2.0 * limit)
     half = torch.sqrt(disc.clamp(min=0.0)) / a
-    centre = mx[splat].double() + b * dy64 / a  # pixel x where sigma is smallest on this row
+    centre = _take(mx, splat).double() + b * dy64 / a  # pixel x where sigma is smallest on this row
     margin = 0.01 + 1e-4 * half
     x0 = torch.ceil(centre - half - margin - 0.5).clamp(0, width).long()
     x1 = torch.floor(centre + half + margin - 0.5).clamp(-1, width - 1).long()
     keep = ((disc >= 0) & (x1 >= x0)).nonzero(as_tuple=True)[0]
-    row = image_row[keep] + camera[splat[keep]] * height
+    row = _take(image_row, keep) + _take(camera, _take(splat, keep)) * height
     order = torch.sort(row, stable=True).indices  # splats stay in depth order within a row
-    keep = keep[order]
-    return Spans(splat[keep], row[order], dy[keep], x0[keep], (x1 - x0 + 1)[keep])
+    keep = _take(keep, order)
+    return Spans(_take(splat, keep), _take(row, order), _take(dy, keep), _take(x0, keep), _take(x1 - x0 + 1, keep))
 
 
 def _bands(spans: Spans, rows: int, max_pairs: int) -> list[tuple[int, int]]:

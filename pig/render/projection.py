@@ -55,9 +55,10 @@ def project_splats(
 
     # Gather before projecting: invalid pairs (behind the camera) never enter the graph, so their
     # divisions by z cannot put NaN into the backward pass.
-    covars, _ = _quat_scale_to_covar_preci(quats[gid], scales[gid], compute_preci=False)
-    means_c, covars_c = _world_to_cam(means[gid, None], covars[:, None], viewmats[cam, None])
-    means2d, cov2d = _persp_proj(means_c[:, 0], covars_c[:, 0], Ks[cam], width, height)
+    # index_select gathers: the values of advanced indexing, cheaper under the CPU fit's deterministic kernels.
+    covars, _ = _quat_scale_to_covar_preci(_take(quats, gid), _take(scales, gid), compute_preci=False)
+    means_c, covars_c = _world_to_cam(_take(means, gid)[:, None], covars[:, None], _take(viewmats, cam)[:, None])
+    means2d, cov2d = _persp_proj(means_c[:, 0], covars_c[:, 0], _take(Ks, cam), width, height)
     means2d, cov2d, depth = means2d[:, 0], cov2d[:, 0], means_c[:, 0, 0, 2]
 
     cov2d = cov2d + EPS2D * torch.eye(2, dtype=cov2d.dtype, device=cov2d.device)
@@ -65,7 +66,7 @@ def project_splats(
     conics = torch.stack(
         [cov2d[:, 1, 1] / det, -0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0]) / det, cov2d[:, 0, 0] / det], dim=-1
     )
-    opac = opacities[gid]
+    opac = _take(opacities, gid)
 
     with torch.no_grad():
         # Opacity-aware box (gsplat, after arXiv:2402.00525 B.2): outside it alpha < 1/255.
@@ -79,20 +80,24 @@ def project_splats(
             & (means2d[:, 1] - radii[:, 1] < height)
         )
         keep = inside.nonzero(as_tuple=True)[0]
-        keep = keep[torch.sort(depth[keep], stable=True).indices]
+        keep = _take(keep, torch.sort(_take(depth, keep), stable=True).indices)
 
-    cam, gid = cam[keep], gid[keep]
+    cam, gid = _take(cam, keep), _take(gid, keep)
     num_bases = (sh_degree + 1) ** 2
     campos = torch.linalg.inv(viewmats)[:, :3, 3]
-    colors = _spherical_harmonics(sh_degree, means[gid] - campos[cam], sh[gid, :num_bases])
+    colors = _spherical_harmonics(sh_degree, _take(means, gid) - _take(campos, cam), _take(sh, gid)[:, :num_bases])
     colors = torch.clamp_min(colors + 0.5, 0.0)  # gsplat's offset, as in the Inria rasterizer
     return Splats(
         camera=cam,
         gaussian=gid,
-        means2d=means2d[keep],
-        conics=conics[keep],
-        opacities=opac[keep],
-        features=torch.cat([colors, depth[keep, None]], dim=-1),
-        radii=radii[keep].long(),
+        means2d=_take(means2d, keep),
+        conics=_take(conics, keep),
+        opacities=_take(opac, keep),
+        features=torch.cat([colors, _take(depth, keep)[:, None]], dim=-1),
+        radii=_take(radii, keep).long(),
     )
 
+
+def _take(values: Tensor, index: Tensor) -> Tensor:
+    """values[index] along dim 0 (index_select)."""
+    return values.index_select(0, index)
