@@ -105,13 +105,7 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
         raise error(f"{path}: member '{key}' declares {info.file_size:,} bytes decompressed, more than the "
                     f"{max_bytes:,} bytes read from one member; not read")
     with archive.open(name) as member:
-        try:
-            version = np.lib.format.read_magic(member)
-            if version not in _HEADER_READERS:
-                raise ValueError(f"unsupported .npy format version {version}")
-            shape, _, dtype = _HEADER_READERS[version](member)
-        except ValueError as err:
-            raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
+        shape, _, dtype = _header(member, key, path, error)
         wanted = declared(key, shape, dtype) if declared is not None else None
         if wanted is not None:
             raise error(f"{path}: member '{key}' declares shape {shape} of {dtype}, expected {wanted}; not read")

@@ -20,10 +20,9 @@ import numpy as np
 
 from pig.body.npz import read_npz
 from pig.body.params import ParamsError, SmplxParams
-from pig.data.frame_sources import FramesCapture, camera_frames
+from pig.data.frame_sources import FramesCapture, bounded_file, camera_frames
 from pig.data.raw import CaptureError, RawCamera
 from pig.data.thuman4 import camera_entry, read_params
-from pig.inputs import require_regular_file
 from pig.names import safe_name
 
 CALIBRATION = "calibration.csv"
@@ -73,12 +72,7 @@ def required_files(root: str | Path) -> list[Path]:
 
 def read_calibration(path: Path) -> dict[str, RawCamera]:
     """calibration.csv -> world-to-camera cameras in file order."""
-    try:
-        require_regular_file(path, CaptureError, "ActorsHQ's calibration.csv")
-    except FileNotFoundError:
-        raise CaptureError(f"{path}: calibration file not found") from None
-    if path.stat().st_size > MAX_CSV_BYTES:
-        raise CaptureError(f"{path}: {path.stat().st_size:,} bytes, more than a calibration holds; not read")
+    bounded_file(path, "ActorsHQ's calibration.csv", "calibration file not found", MAX_CSV_BYTES, "a calibration holds")
     rows = list(csv.reader(io.StringIO(path.read_text(errors="replace"))))
     if not rows or tuple(c.strip() for c in rows[0]) != COLUMNS:
         found = ",".join(rows[0]) if rows else "nothing"

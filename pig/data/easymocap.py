@@ -24,12 +24,11 @@ import cv2
 import numpy as np
 
 from pig.body.params import ParamsError, SmplxParams
-from pig.data.frame_sources import (FramesCapture, FrameFiles, camera_frames, relative_folder, video_in_place_of,
-                                     video_size)
+from pig.data.frame_sources import (FramesCapture, FrameFiles, bounded_file, camera_frames, relative_folder,
+                                     video_in_place_of, video_size)
 from pig.data.images import declared_size
 from pig.data.raw import CaptureError, RawCamera
 from pig.data.thuman4 import camera_entry
-from pig.inputs import require_regular_file
 from pig.names import safe_name
 
 if TYPE_CHECKING:
@@ -58,12 +57,8 @@ class _Storage:
 
     def __init__(self, path: Path):
         self.path = path
-        try:
-            require_regular_file(path, CaptureError, "an OpenCV FileStorage YAML file")
-        except FileNotFoundError:
-            raise CaptureError(f"{path}: file not found; expected {LAYOUT}") from None
-        if path.stat().st_size > MAX_YAML_BYTES:
-            raise CaptureError(f"{path}: {path.stat().st_size:,} bytes, more than a calibration holds; not read")
+        bounded_file(path, "an OpenCV FileStorage YAML file", f"file not found; expected {LAYOUT}", MAX_YAML_BYTES,
+                     "a calibration holds")
         try:
             self.storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         except cv2.error as err:
@@ -146,12 +141,7 @@ def read_cameras(root: Path, image_size) -> dict[str, RawCamera]:
 
 def read_fit(path: Path, person: int | None) -> dict[str, np.ndarray]:
     """One frame's fit of one person: {Rh, Th, poses, shapes, expression} as flat float64 arrays."""
-    try:
-        require_regular_file(path, CaptureError, "an EasyMocap fit (JSON)")
-    except FileNotFoundError:
-        raise CaptureError(f"{path}: file not found") from None
-    if path.stat().st_size > MAX_JSON_BYTES:
-        raise CaptureError(f"{path}: {path.stat().st_size:,} bytes, more than a frame's fits; not read")
+    bounded_file(path, "an EasyMocap fit (JSON)", "file not found", MAX_JSON_BYTES, "a frame's fits")
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:

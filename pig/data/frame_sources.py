@@ -268,6 +268,18 @@ class FramesCapture:
                                f"the calibration gives {cam.width}x{cam.height} for camera {camera}")
 
 
+def bounded_file(path: Path, expected: str, missing: str, max_bytes: int, holds: str) -> None:
+    """CaptureError unless `path` is a regular file (`expected`) of at most `max_bytes`: `missing` words its absence,
+    `holds` what a file of that kind holds at most."""
+    try:
+        require_regular_file(path, CaptureError, expected)
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: {missing}") from None
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise CaptureError(f"{path}: {size:,} bytes, more than {holds}; not read")
+
+
 def relative_folder(value, what: str, where: str) -> str:
     """`value` if it is a relative folder path whose every component is one safe name (never absolute, never
     `..`, never hidden), else CaptureError naming `where` and `what` it is."""
