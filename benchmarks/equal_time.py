@@ -5,7 +5,10 @@ pose metrics at the finest LOD (with the synthetic subject's ground truth: garme
 and its held-out novel-view PSNR against training seconds. Prints one Markdown table: every (seed, budget,
 variant) with the mean over its replicates and, where there are several, the spread (max - min); then the held-out
 novel-view PSNR read off each fit's curve at 1, 2, 5 and 10 minutes (labelled "curve": linear between the
-evaluations around that time, every 1000 iterations). `--plot` draws error against training time, one panel per metric, both subjects:
+evaluations around that time, every 1000 iterations). A fit whose JSON never came back (the hold ended during its
+final evaluation) is listed with `log` and `text` instead: its curve from the train log, its final metrics from
+the evaluate lines it printed, and "-" for a split it did not reach. `--plot` draws error against training time,
+one panel per metric, both subjects:
 
     python benchmarks/equal_time.py --plot docs/equal_time.png
 """
@@ -13,7 +16,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import csv
 import math
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -29,21 +34,55 @@ METRICS = [("NV PSNR", "novel_view", "psnr", 2), ("NV SSIM", "novel_view", "ssim
            ("body acc / comp mm", "novel_view", ("accuracy_mm_body", "completeness_mm_body"), 1),
            ("drift mm", "novel_view", "drift_mm", 1)]
 CURVE_MINUTES = (1, 2, 5, 10)
+SUMMARY_KEYS = ("psnr", "ssim", "psnr_garment", "psnr_body", "accuracy_mm_garment", "completeness_mm_garment",
+                "accuracy_mm_body", "completeness_mm_body", "drift_mm")
+# The evaluate stage's printed summary of one split and LOD (pig/stages/evaluate.py), images, then regions.
+NUMBER = r"(-?[\d.]+|nan)"
+IMAGE_LINE = re.compile(rf"\[evaluate\] (\w+) lod(\d+): PSNR {NUMBER} SSIM {NUMBER} ")
+REGION_LINE = re.compile(
+    rf"\[evaluate\] (\w+) lod(\d+): PSNR garment {NUMBER} body {NUMBER} background {NUMBER}; accuracy garment "
+    rf"{NUMBER} body {NUMBER} mm, completeness garment {NUMBER} body {NUMBER} mm, drift {NUMBER} mm")
 
 
 def load_fits(manifest: Path) -> list[dict]:
     """The manifest's fits, each with its final metrics, iterations, ms/it and held-out curve [(train s, dB)]."""
     entries = yaml.safe_load(manifest.read_text())["fits"]
-    fits = []
-    for entry in entries:
-        record = json.loads((manifest.parent / entry["json"]).read_text())["results"]
-        [result] = [r for r in record if r.get("budget")]
-        budget = result["budget"]
-        finest = {split: budget[split][max(budget[split], key=int)] for split in ("novel_view", "novel_pose")}
-        fits.append({**entry, "variant": result["variant"], "final": finest, "iterations": budget["iterations"],
-                     "train_s": budget["train_s"], "compile_s": budget.get("compile_s", math.nan),
-                     "ms_per_iteration": result["ms_per_iteration"], "curve": [tuple(p) for p in result["heldout_by_time"]]})
-    return fits
+    return [fit_from_json(manifest.parent, entry) if "json" in entry else fit_from_log(manifest.parent, entry)
+            for entry in entries]
+
+
+def fit_from_json(root: Path, entry: dict) -> dict:
+    record = json.loads((root / entry["json"]).read_text())["results"]
+    [result] = [r for r in record if r.get("budget")]
+    budget = result["budget"]
+    finest = {split: budget[split][max(budget[split], key=int)] for split in ("novel_view", "novel_pose")}
+    return {**entry, "variant": result["variant"], "final": finest, "iterations": budget["iterations"],
+            "train_s": budget["train_s"], "compile_s": budget.get("compile_s", math.nan),
+            "ms_per_iteration": result["ms_per_iteration"], "curve": [tuple(p) for p in result["heldout_by_time"]]}
+
+
+def fit_from_log(root: Path, entry: dict) -> dict:
+    with open(root / entry["log"], newline="") as file:
+        rows = list(csv.DictReader(file))
+    last = rows[-1]
+    curve = [(float(r["train_s"]), float(r["heldout_psnr"])) for r in rows if r["heldout_psnr"]]
+    return {**entry, "final": printed_metrics((root / entry["text"]).read_text()), "iterations": int(last["iteration"]),
+            "train_s": float(last["train_s"]), "compile_s": float(last["compile_s"]), "ms_per_iteration": math.nan,
+            "curve": curve}
+
+
+def printed_metrics(text: str) -> dict:
+    """{split: summary} of the finest LOD each split printed; NaN for what is missing."""
+    found: dict[str, dict[int, dict]] = {split: defaultdict(dict) for split in ("novel_view", "novel_pose")}
+    for match in IMAGE_LINE.finditer(text):
+        found[match[1]][int(match[2])].update(psnr=float(match[3]), ssim=float(match[4]))
+    for match in REGION_LINE.finditer(text):
+        values = [float(v) for v in match.groups()[2:]]
+        found[match[1]][int(match[2])].update(zip(("psnr_garment", "psnr_body", "psnr_background",
+                                                   "accuracy_mm_garment", "accuracy_mm_body", "completeness_mm_garment",
+                                                   "completeness_mm_body", "drift_mm"), values))
+    return {split: {key: lods[max(lods)].get(key, math.nan) if lods else math.nan for key in SUMMARY_KEYS}
+            for split, lods in found.items()}
 
 
 def metric(fit: dict, split: str, key) -> float | tuple[float, float]:
@@ -62,6 +101,8 @@ def read_off(curve: list[tuple[float, float]], seconds: float) -> float:
 def cell(values: list, decimals: int) -> str:
     if isinstance(values[0], tuple):
         return " / ".join(cell([v[i] for v in values], decimals) for i in range(len(values[0])))
+    if any(math.isnan(v) for v in values):
+        return "-"
     mean = float(np.mean(values))
     return f"{mean:.{decimals}f}" + (f" ± {(max(values) - min(values)) / 2:.{decimals}f}" if len(values) > 1 else "")
 
@@ -108,6 +149,8 @@ def plot(fits: list[dict], path: Path) -> None:
             else:
                 value = metric(fit, spec[1], spec[2])
                 value = value[0] if isinstance(value, tuple) else value  # geometry: accuracy
+                if math.isnan(value):
+                    continue
                 ax.plot(fit["budget_s"] / 60, value, "o" if fit["seed"] == 0 else "s", color=colour, alpha=0.8)
         ax.set_title(title if spec is None or not isinstance(spec[2], tuple) else title.split(" / ")[0] + " mm",
                      fontsize=9)
@@ -134,7 +177,9 @@ def main(argv=None) -> int:
     print(table(fits))
     for fit in fits:
         print(f"\n{fit['hold']} seed {fit['seed']} {fit['variant']} #{fit['replicate']} ({fit['device']}): "
-              f"{fit['iterations']} iterations, {fit['ms_per_iteration']:.1f} ms/it, {fit['train_s']:.0f} training s, "
+              f"{fit['iterations']} iterations, "
+              + ("" if math.isnan(fit["ms_per_iteration"]) else f"{fit['ms_per_iteration']:.1f} ms/it, ")
+              + f"{fit['train_s']:.0f} training s, "
               f"{fit['compile_s']:.0f} s of compilation left out", end="")
     print()
     if args.plot is not None:

@@ -268,6 +268,8 @@ def main(argv=None) -> int:
     parser.add_argument("--iterations", type=int, default=60, help="timed iterations, warm-up included")
     parser.add_argument("--warmup", type=int, default=5, help="iterations left out of the timing (compilation happens there)")
     parser.add_argument("--supersample", type=int, default=1)
+    parser.add_argument("--workers", type=int, default=None,
+                        help="processes generating the capture (default: the preset's; a 32-core host halves it with 32)")
     parser.add_argument("--variant", action="append", default=[], help="NAME:section.key=value,... (repeatable)")
     parser.add_argument("--profile-phases", type=int, default=0, help="iterations timed per phase after the timed ones")
     parser.add_argument("--profile-ops", type=int, default=0, help="iterations under torch.profiler after those")
@@ -290,6 +292,8 @@ def main(argv=None) -> int:
         syn_cfg["seed"] = args.seed
     if args.cameras is not None:
         syn_cfg["cameras"] = args.cameras
+    if args.workers is not None:
+        syn_cfg["workers"] = args.workers
     syn = SyntheticConfig(**syn_cfg)
     capture = args.workdir / "capture"
     stamps = {}

@@ -1,0 +1,48 @@
+"""benchmarks/equal_time.py: a fit read from its train log and printed lines agrees with the same fit's JSON."""
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from equal_time import SUMMARY_KEYS, fit_from_json, fit_from_log, printed_metrics, table  # noqa: E402
+
+RUNS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_runs"
+# run27's no_precond came back whole: its JSON is the reference for what the printed lines and log give.
+ENTRY = {"seed": 0, "budget_s": 900, "replicate": 1, "hold": "run27", "device": "H200"}
+JSON_ENTRY = {**ENTRY, "json": "run27/no_precond.json", "log": "run27/no_precond_train_log.csv"}
+LOG_ENTRY = {**ENTRY, "log": "run27/no_precond_train_log.csv", "text": "run27/no_precond.txt", "variant": "no_precond"}
+
+
+def test_log_and_printed_lines_give_the_json_figures():
+    whole, printed = fit_from_json(RUNS, JSON_ENTRY), fit_from_log(RUNS, LOG_ENTRY)
+    assert printed["iterations"] == whole["iterations"]
+    assert printed["train_s"] == pytest.approx(whole["train_s"], abs=1e-3)
+    assert printed["curve"] == pytest.approx(whole["curve"])
+    for split in ("novel_view", "novel_pose"):
+        for key in SUMMARY_KEYS:
+            decimals = 4 if key == "ssim" else 1 if "mm" in key else 2  # as the evaluate stage prints them
+            assert printed["final"][split][key] == pytest.approx(whole["final"][split][key], abs=0.51 * 10**-decimals), key
+
+
+def test_the_finest_printed_level_counts_and_a_missing_split_is_nan():
+    text = "\n".join([
+        "[evaluate] novel_view lod0: PSNR 20.00 SSIM 0.5000 (blank 1.00 / 0.1000) FID nan over 4 images",
+        "[evaluate] novel_view lod2: PSNR 30.25 SSIM 0.9500 (blank 1.00 / 0.1000) FID nan over 4 images",
+        "[evaluate] novel_view lod2: PSNR garment 21.50 body 28.00 background 35.00; accuracy garment 6.5 body 4.0 mm, "
+        "completeness garment 4.5 body 9.0 mm, drift 11.0 mm (last frame 13.0)",
+        "[evaluate] novel_pose lod3: LPIPS is NaN",  # a note, no figures
+    ])
+    final = printed_metrics(text)
+    assert final["novel_view"]["psnr"] == 30.25 and final["novel_view"]["ssim"] == 0.95
+    assert final["novel_view"]["accuracy_mm_body"] == 4.0 and final["novel_view"]["completeness_mm_garment"] == 4.5
+    assert all(math.isnan(v) for v in final["novel_pose"].values())
+
+
+def test_a_missing_split_prints_a_dash():
+    fit = fit_from_log(RUNS, LOG_ENTRY)
+    fit["final"]["novel_pose"] = dict.fromkeys(SUMMARY_KEYS, math.nan)
+    row = [line for line in table([fit]).splitlines() if "| no_precond |" in line][0]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[5] == f"{fit['final']['novel_view']['psnr']:.2f}" and cells[7] == "-" and cells[8] == "-"
