@@ -26,6 +26,7 @@ from typing import Any
 
 from pig.avatar.config import AvatarConfig
 from pig.avatar.fit_config import FitConfig
+from pig.avatar.plan import HELD_OUT, Protocol, SplitSize
 from pig.config import ConfigError, config_dirs, from_dict, load_section, load_yaml, named_config
 from pig.data.formats import FORMATS, subject_path
 from pig.data.raw import CaptureError
@@ -335,6 +336,42 @@ def nominal_geometry(preset: dict[str, Any], dataset: dict[str, Any]) -> Geometr
     return None
 
 
+def nominal_views(preset: dict[str, Any], dataset: dict[str, Any]) \
+        -> tuple[Geometry, dict[str, int], dict[str, dict[str, list]]] | None:
+    """(nominal_geometry, each camera's pixels after preprocessing (the preset's scale and max_side for the
+    dataset), the protocol's split of those cameras and frames), or None without sizes."""
+    geometry = nominal_geometry(preset, dataset)
+    if geometry is None:
+        return None
+    prep = load_section(preset, "preprocess", PreprocessConfig)
+    overrides = prep.datasets.get(dataset.get("name"), {})
+    scale, max_side = overrides.get("scale", prep.scale), overrides.get("max_side", prep.max_side)
+    pixels = {c: output_size(w, h, scale, max_side) for c, (w, h) in geometry.cameras.items()}
+    split_cfg = from_dict(SplitConfig, dict(dataset.get("split") or {}), "dataset split")
+    split = make_split(list(geometry.cameras), geometry.frames, split_cfg, str((dataset.get("subjects") or ["?"])[0]))
+    return geometry, {c: w * h for c, (w, h) in pixels.items()}, split
+
+
+def nominal_protocol(preset: dict[str, Any], dataset: dict[str, Any]) -> Protocol | None:
+    """One subject's held-out splits and capture from the dataset's nominal sizes (pig plan), or None without
+    sizes; the first subject's split stands for every subject's."""
+    views = nominal_views(preset, dataset)
+    if views is None:
+        return None
+    geometry, pixels, split = views
+    sizes = {}
+    for name in HELD_OUT:
+        cameras, frames = split[name]["cameras"], len(split[name]["frames"])
+        sizes[name] = SplitSize(frames, len(cameras) * frames, sum(pixels[c] for c in cameras) / len(cameras) / 1e6)
+    written = {}
+    for part in split.values():
+        for camera in part["cameras"]:
+            written[camera] = written.get(camera, 0) + len(part["frames"])
+    capture_views = sum(written.values())
+    raw = sum(count * geometry.cameras[c][0] * geometry.cameras[c][1] for c, count in written.items())
+    return Protocol(sizes, capture_views, raw / capture_views / 1e6)
+
+
 @dataclass
 class DiskEstimate:
     total: float
@@ -357,16 +394,11 @@ def estimate_disk(preset: dict[str, Any], dataset: dict[str, Any], variants: int
                 TRACK_BYTES), anchors at LOD l = anchors / 2^(levels - 1 - l)
     each times MARGIN, + SMALL_FILES per run.
     """
-    geometry = nominal_geometry(preset, dataset)
-    if geometry is None:
+    views = nominal_views(preset, dataset)
+    if views is None:
         return None
+    geometry, pixels, split = views
     prep = load_section(preset, "preprocess", PreprocessConfig)
-    overrides = prep.datasets.get(dataset.get("name"), {})
-    scale, max_side = overrides.get("scale", prep.scale), overrides.get("max_side", prep.max_side)
-    pixels = {c: output_size(w, h, scale, max_side) for c, (w, h) in geometry.cameras.items()}
-    pixels = {c: w * h for c, (w, h) in pixels.items()}
-    split_cfg = from_dict(SplitConfig, dict(dataset.get("split") or {}), "dataset split")
-    split = make_split(list(geometry.cameras), geometry.frames, split_cfg, str((dataset.get("subjects") or ["?"])[0]))
     area = {name: sum(pixels[c] for c in part["cameras"]) * len(part["frames"]) for name, part in split.items()}
     train_bpp = JPEG_BPP if prep.train_encoding == "jpeg" else PNG_BPP
     heldout_bpp = PNG_BPP if prep.heldout_encoding == "png" else JPEG_BPP

@@ -27,8 +27,10 @@ from test_workflow import (  # noqa: F401  (recorded: the fixture, shared with t
     snakemake_run,
 )
 
-from pig.avatar.plan import format_plan, makespan_s, plan_fits
+from pig.avatar.plan import (REFERENCE_MEGAPIXELS, Protocol, ProtocolRates, SplitSize, format_plan, makespan_s,
+                             plan_fits, plan_tables, preprocess_seconds, split_seconds)
 from pig.config import load_preset
+from pig.doctor import load_dataset, nominal_protocol
 from pig.gpu_slots import DEVICES_ENV, LOCK_DIR_ENV, lock_path
 
 PAPER_TABLES = ("--configfile", str(REPO / "config" / "paper_tables.yaml"))
@@ -51,6 +53,110 @@ def test_makespan_longest_first_on_the_device_that_frees_first():
         makespan_s([1.0], 0)
 
 
+def test_makespan_closed_forms_and_the_optimum_with_few_jobs():
+    rng = random.Random(1)
+    for _ in range(50):
+        jobs = [rng.uniform(0.1, 5) for _ in range(rng.randint(1, 6))]
+        assert makespan_s(jobs, 1) == pytest.approx(sum(jobs))  # one GPU: one after the other
+        assert makespan_s(jobs, len(jobs) + rng.randint(0, 3)) == max(jobs)  # a GPU each: the longest
+        # One job more than GPUs: some GPU runs two, at best the two shortest, so the optimum is
+        # max(longest, sum of the two shortest), which longest-first reaches; checked against every assignment.
+        gpus = len(jobs) - 1
+        if gpus:
+            best = min(max(sum(j for j, d in zip(jobs, assign) if d == g) for g in range(gpus))
+                       for assign in itertools.product(range(gpus), repeat=len(jobs)))
+            assert makespan_s(jobs, gpus) == pytest.approx(best)
+            assert best == pytest.approx(max(max(jobs), sum(sorted(jobs)[:2])))
+
+
+def test_a_split_costs_its_frames_views_pixels_and_one_pass():
+    rates = ProtocolRates(render_ms_per_frame=20.0, render_ms_per_view=4.0, evaluate_s_per_split=10.0,
+                          evaluate_ms_per_view=8.0, preprocess_views_per_s=50.0)
+    size = SplitSize(frames=100, views=600, megapixels=2 * REFERENCE_MEGAPIXELS)  # twice the reference's pixels
+    # By hand, at 3 LODs: render 3 x (100 x 20 ms + 600 x 2 x 4 ms) = 20.4 s; evaluate 10 s + 3 x 600 x 2 x 8 ms.
+    assert split_seconds(size, 3, rates) == pytest.approx(20.4 + 10 + 28.8)
+    assert split_seconds(size, 3, rates, rendered=True) == pytest.approx(10 + 28.8)
+    with pytest.raises(ValueError, match="positive"):
+        ProtocolRates(render_ms_per_view=0.0)
+
+
+def test_plan_adds_render_and_evaluate_per_split_left_and_schedules_fit_and_splits(tmp_path):
+    preset = load_preset("test")
+    preset["fit"].update(iterations=1000, weight_lpips=0.0)
+    preset["avatar"]["levels"] = 2
+    preset["variants"]["one_level"] = {"avatar": {"levels": 1}}
+    protocol = Protocol({"novel_view": SplitSize(10, 20, REFERENCE_MEGAPIXELS),
+                         "novel_pose": SplitSize(5, 40, REFERENCE_MEGAPIXELS / 2)}, capture_views=300,
+                        raw_megapixels=4 * REFERENCE_MEGAPIXELS)
+    rates = ProtocolRates(100.0, 50.0, 3.0, 25.0, 10.0)
+    results = tmp_path / "results"
+    done = results / "a" / "pig"  # fit and both splits done
+    (done / "metrics").mkdir(parents=True)
+    for name in ("avatar.pt", "metrics/novel_view.json", "metrics/novel_pose.json"):
+        (done / name).write_bytes(b"")
+    rendered = results / "b" / "pig"  # fit done, novel_pose rendered, nothing scored
+    (rendered / "renders" / "novel_pose").mkdir(parents=True)
+    (rendered / "avatar.pt").write_bytes(b"")
+    (results / "a" / "capture").mkdir(parents=True)
+    (results / "a" / "capture" / "report.json").write_text("{}")
+    runs = [("a", "pig"), ("b", "pig"), ("b", "one_level")]
+    planned = plan_fits(preset, runs, results, ms_per_iteration=10.0, protocol=protocol, rates=rates)
+    # By hand. novel_view at L LODs: render L (10 x 0.1 + 20 x 0.05) = 2L s, evaluate 3 + L x 20 x 0.025 = 3 + 0.5L;
+    # novel_pose (half the pixels): render L (5 x 0.1 + 40 x 0.5 x 0.05) = 1.5L, evaluate 3 + L x 40 x 0.5 x 0.025.
+    nv = {2: 4 + 4, 1: 2 + 3.5}
+    np_render, np_eval = {2: 3.0, 1: 1.5}, {2: 4.0, 1: 3.5}
+    got = {(p.subject, p.variant): (p.levels, p.fit_s, p.splits_left, p.protocol_s) for p in planned}
+    assert got == {("a", "pig"): (2, 0.0, [], 0.0),
+                   ("b", "pig"): (2, 0.0, ["novel_view", "novel_pose"], pytest.approx(nv[2] + np_eval[2])),
+                   ("b", "one_level"): (1, pytest.approx(10.0), ["novel_view", "novel_pose"],
+                                        pytest.approx(nv[1] + np_render[1] + np_eval[1]))}
+    jobs = [nv[2] + np_eval[2], 10.0 + nv[1] + np_render[1] + np_eval[1]]  # 12 s and 22.5 s
+    text = format_plan(planned, [1, 2, 5])
+    assert "1 of 3 fits to run, 4 of 6 held-out splits to render and evaluate" in text
+    assert f"GPU-hours: fits {10 / 3600:.2f}, render + evaluate {(sum(jobs) - 10) / 3600:.2f}, total " \
+           f"{sum(jobs) / 3600:.2f}" in text
+    hours = {1: sum(jobs), 2: max(jobs), 5: max(jobs)}
+    assert [line.strip() for line in text.splitlines() if line.startswith("  on ")] == [
+        f"on {n} GPU(s): {hours[n] / 3600:.2f} h" for n in (1, 2, 5)]
+    # Preprocess: subject b only (a's capture is written), 300 views of 4x the reference's pixels at 10 a second.
+    assert preprocess_seconds(["a", "b", "b"], results, protocol, rates) == (1, pytest.approx(300 * 4 / 10))
+    # Without the dataset's sizes: the fits alone, said so.
+    text = format_plan(plan_fits(preset, runs, results, ms_per_iteration=10.0), [2])
+    assert "render + evaluate not counted" in text and f"on 2 GPU(s): {10 / 3600:.2f} h" in text
+
+
+def test_plan_with_everything_done_or_nothing_to_plan(tmp_path):
+    preset = load_preset("test")
+    folder = tmp_path / "s" / "pig"
+    (folder / "metrics").mkdir(parents=True)
+    for name in ("avatar.pt", "metrics/novel_view.json", "metrics/novel_pose.json"):
+        (folder / name).write_bytes(b"")
+    (tmp_path / "s" / "capture").mkdir()
+    (tmp_path / "s" / "capture" / "report.json").write_text("{}")
+    protocol = Protocol({"novel_view": SplitSize(1, 1, 1.0), "novel_pose": SplitSize(1, 1, 1.0)}, 2, 1.0)
+    text = plan_tables(preset, [("s", "pig")], tmp_path, 10.0, 20.0, protocol, ProtocolRates(), [1, 8])
+    assert "0 of 1 fits to run, 0 of 2 held-out splits" in text
+    assert "total 0.00" in text and "on 8 GPU(s): 0.00 h" in text and "0 subject(s) to preprocess, 0.00 h" in text
+    assert "on 1 GPU(s): 0.00 h" in format_plan([], [1])
+
+
+def test_nominal_protocols_of_thuman4_and_dna_as_formats_md_gives_them():
+    paper = load_preset("paper")
+    thuman4 = nominal_protocol(paper, load_dataset("thuman4")[0])
+    # 24 cameras x 2500 frames at 1330 x 1150: cam23 on frames 0..1999, all 24 on 2000..2499.
+    assert thuman4 == Protocol({"novel_view": SplitSize(2000, 2000, pytest.approx(1.5295)),
+                                "novel_pose": SplitSize(500, 12000, pytest.approx(1.5295))}, 60000,
+                               pytest.approx(1.5295))
+    dna = nominal_protocol(paper, load_dataset("dna")[0])
+    # 48 cameras at 2448 x 2048 and 12 at 4096 x 3000, halved by the paper preset; 225 frames, the last 45 novel
+    # pose: novel view on cameras 48..59 (2048 x 1500) on 180 frames, novel pose on all 60.
+    big, small = 2048 * 1500 / 1e6, 1224 * 1024 / 1e6
+    raw = (48 * 2448 * 2048 + 12 * 4096 * 3000) / 60 / 1e6
+    assert dna == Protocol({"novel_view": SplitSize(180, 2160, pytest.approx(big)),
+                            "novel_pose": SplitSize(45, 2700, pytest.approx((48 * small + 12 * big) / 60))}, 13500,
+                           pytest.approx(raw))
+
+
 def test_plan_counts_iterations_lpips_budget_and_checkpoints(tmp_path):
     preset = load_preset("test")
     preset["fit"].update(iterations=1000, weight_lpips=2.0)
@@ -65,7 +171,7 @@ def test_plan_counts_iterations_lpips_budget_and_checkpoints(tmp_path):
     torch.save({"iteration": 10, "wall_s": 4.0}, results / "s2" / "budget" / "checkpoint.pt")
     runs = [("s1", "pig"), ("s2", "pig"), ("s1", "no_lpips"), ("s1", "budget"), ("s2", "budget")]
     planned = plan_fits(preset, runs, results, ms_per_iteration=20.0, ms_per_iteration_lpips=300.0)
-    got = {(p.subject, p.variant): (p.state, p.lpips, p.iterations, p.remaining_s) for p in planned}
+    got = {(p.subject, p.variant): (p.state, p.lpips, p.iterations, p.fit_s) for p in planned}
     assert got == {
         ("s1", "pig"): ("done", True, 1000, 0.0),
         ("s2", "pig"): ("resumes at 250", True, 1000, pytest.approx(750 * 0.3)),
@@ -73,10 +179,10 @@ def test_plan_counts_iterations_lpips_budget_and_checkpoints(tmp_path):
         ("s1", "budget"): ("to run", False, 1000, pytest.approx(5.0)),  # 1000 x 20 ms = 20 s > the 5 s budget
         ("s2", "budget"): ("resumes at 10", False, 1000, pytest.approx(1.0)),  # 4 of its 5 s spent
     }
-    text = format_plan(planned, gpus=2)
+    text = format_plan(planned, gpus=[2])
     total_h = (750 * 0.3 + 400 * 0.02 + 5.0 + 1.0) / 3600
-    assert f"4 of 5 fits to run: {total_h:.2f} GPU-hours" in text
-    assert f"on 2 GPU(s), one fit each at a time: about {makespan_s([225, 8, 5, 1], 2) / 3600:.2f} h wall" in text
+    assert "4 of 5 fits to run" in text and f"GPU-hours: fits {total_h:.2f}; render + evaluate not counted" in text
+    assert f"on 2 GPU(s): {makespan_s([225, 8, 5, 1], 2) / 3600:.2f} h" in text
     with pytest.raises(ValueError, match="positive"):
         plan_fits(preset, runs, results, ms_per_iteration=0.0)
     (results / "s2" / "pig" / "checkpoint.pt").write_bytes(b"not a checkpoint")
@@ -109,15 +215,22 @@ def test_plan_of_the_paper_tables_on_dna_needs_no_data(fresh):
     """The paper's DNA-Rendering runs (3 main subjects, 4 ablations + the full method on 0102, 3 noise levels + the
     full method on 0012), planned before any data is there; the `paper` preset's 100k iterations with LPIPS."""
     snakemake_run(fresh, "plan_tables", "--cores", "1", *PAPER_TABLES, "--config", "preset=paper", "dataset=dna",
-                  "ms_per_iteration_lpips=500")
+                  "ms_per_iteration_lpips=500", "plan_gpus=[1,8]", "plan_rates={evaluate_s_per_split: 60}")
     output = (fresh / "results" / "tables" / "logs" / "plan_dna.log").read_text()  # also on the terminal
     expected = [("0165_08", "pig"), ("0166_04", "pig"), ("0206_04", "pig"), ("0102", "pig"), ("0102", "no_precond"),
                 ("0102", "fixed_anchors"), ("0102", "no_offsets"), ("0102", "single_mlp"), ("0012", "pig"),
                 ("0012", "noise_0.1"), ("0012", "noise_0.2"), ("0012", "noise_0.25")]
     rows = [line.split() for line in output.splitlines() if line.split()[:2] in [list(run) for run in expected]]
     assert [tuple(row[:2]) for row in rows] == expected
-    assert all(row[2:5] == ["100000", "on", "500"] for row in rows)
-    assert f"12 of 12 fits to run: {12 * 100_000 * 0.5 / 3600:.2f} GPU-hours" in output
+    assert all(row[2:6] == ["100000", "on", "500.0", "4"] for row in rows)
+    fits_h = 12 * 100_000 * 0.5 / 3600
+    # The protocol's render and evaluate at the default rates but for the 60 s a pass set in plan_rates.
+    protocol = nominal_protocol(load_preset("paper"), load_dataset("dna")[0])
+    rates = ProtocolRates(evaluate_s_per_split=60.0)
+    per_fit_s = sum(split_seconds(size, 4, rates) for size in protocol.splits.values())
+    assert f"GPU-hours: fits {fits_h:.2f}, render + evaluate {12 * per_fit_s / 3600:.2f}" in output
+    assert f"on 1 GPU(s): {(fits_h + 12 * per_fit_s / 3600):.2f} h" in output
+    assert f"on 8 GPU(s): {2 * (100_000 * 0.5 + per_fit_s) / 3600:.2f} h" in output  # 12 equal jobs: two rounds
 
 
 def _hold(path: Path):

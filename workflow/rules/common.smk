@@ -389,6 +389,12 @@ def planned_runs():
     return " ".join(f"--run {shlex.quote(subject)} {shlex.quote(variant)}" for subject, variant in runs)
 
 
+def plan_rate_options():
+    """`--render-ms-per-frame 30 ...` for each rate that the config's `plan_rates` sets (pig plan's options)."""
+    rates = config.get("plan_rates") or {}
+    return " ".join(f"--{name.replace('_', '-')} {float(value)!r}" for name, value in rates.items())
+
+
 def table_runs(dataset, table):
     """(subject, variant) pairs of a table: its variants among the config's on the dataset's `subjects` (main and
     regions tables) or `<table>_subjects` (ablation, noise). Refused at once, naming the target, when it has none."""

@@ -13,8 +13,10 @@ rule all_tables:
 
 
 rule plan_tables:
-    """Print the fits of all_tables, which are done, and the GPU-hours of the others (preset iterations x
-    `ms_per_iteration` or `ms_per_iteration_lpips` of the config)."""
+    """Print the fits of all_tables, which are done, and the GPU-hours of the others: preset iterations x
+    `ms_per_iteration` or `ms_per_iteration_lpips` of the config, then each fit's render and evaluate of the
+    dataset's protocol (the `plan_rates` of the config, else pig plan's H100 defaults); the wall time on the
+    `plan_gpus` counts, else on this machine's GPU slots."""
     log:
         f"results/tables/logs/plan_{config['dataset']}.log",
     localrule: True
@@ -22,12 +24,14 @@ rule plan_tables:
         CPU_ENV
     params:
         results=f"results/{config['dataset']}",
+        dataset=config["datasets"][config["dataset"]],
         runs=lambda wildcards: planned_runs(),
         preset=config["preset"],
         ms=config["ms_per_iteration"],
         ms_lpips=config["ms_per_iteration_lpips"],
-        gpus=lambda wildcards: gpu_slot_count(),
+        rates=lambda wildcards: plan_rate_options(),
+        gpus=lambda wildcards: " ".join(map(str, config.get("plan_gpus") or [gpu_slot_count()])),
     shell:
-        "python -m pig.stages.plan --results {params.results:q} {params.runs} --preset {params.preset:q} "
-        "--ms-per-iteration {params.ms} --ms-per-iteration-lpips {params.ms_lpips} --gpus {params.gpus} "
-        "2>&1 | tee {log:q}"
+        "python -m pig.stages.plan --results {params.results:q} --dataset {params.dataset:q} {params.runs} "
+        "--preset {params.preset:q} --ms-per-iteration {params.ms} --ms-per-iteration-lpips {params.ms_lpips} "
+        "{params.rates} --gpus {params.gpus} 2>&1 | tee {log:q}"
