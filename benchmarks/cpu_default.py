@@ -6,7 +6,9 @@ held-out splits and the evaluate stage at the finest LOD, as the default target 
 last iterate where it keeps one, `fit.average_decay`) and the mean per candidate. The CPU fit is deterministic for a given
 thread count, so the PSNRs repeat exactly; the seed (`fit.seed`: initialisation and batch order) is what spreads
 them, so compare candidates over several seeds. `--jobs 2` runs two fits side by side (one thread each): their
-PSNRs stay exact, their times do not.
+PSNRs stay exact, their times do not. `--processes N` fits each candidate as N gloo processes of `--threads` threads
+(pig.avatar.parallel_fit, the data-parallel fit of `pig fit --gpus N`, on the CPU): each process takes its share of
+the batch's views, so `fit.views` must be at least N.
 
 Step cost (`--steps N`): per candidate, N iterations of the fit with `--threads` torch threads, seconds per
 iteration over iterations 10..N, the candidates taken in turn `--repeats` times in one process; `--profile-ops K`
@@ -54,19 +56,28 @@ def write_preset(base: str, overrides: dict, path: Path, **fit) -> Path:
     return path
 
 
-def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path, base: str, threads: int) -> dict:
+def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path, base: str, threads: int,
+            processes: int = 1) -> dict:
     """Fit, render both splits, evaluate the finest LOD; the stages as subprocesses, as the workflow runs them."""
     root = workdir / f"{name}_seed{seed}"
     shutil.rmtree(root, ignore_errors=True)
     root.mkdir(parents=True)
-    preset = write_preset(base, overrides, root / "preset.yaml", seed=seed)
+    preset = write_preset(base, overrides, root / "preset.yaml", seed=seed,
+                          **({"cpu_threads": threads} if processes > 1 else {}))
 
     def stage(*args: str) -> None:
         with open(root / "log.txt", "a") as log:
             subprocess.run([sys.executable, "-m", *args, "--preset", str(preset)], check=True, stdout=log, stderr=log)
 
     started = time.perf_counter()
-    stage("pig.stages.fit", "--capture", str(capture), "--output", str(root / "fit"), "--threads", str(threads))
+    if processes > 1:  # the fit stage starts several processes on CUDA only: the library call, in its own process
+        with open(root / "log.txt", "a") as log:
+            subprocess.run([sys.executable, "-c", "import sys; from pig.avatar.parallel_fit import fit_parallel; "
+                            "fit_parallel(sys.argv[1], sys.argv[2], sys.argv[3], 'pig', int(sys.argv[4]), 'cpu', "
+                            "progress_s=60.0)", str(capture), str(root / "fit"), str(preset), str(processes)],
+                           check=True, stdout=log, stderr=log)
+    else:
+        stage("pig.stages.fit", "--capture", str(capture), "--output", str(root / "fit"), "--threads", str(threads))
     row = {"name": name, "seed": seed, "fit_s": time.perf_counter() - started}
     for split in ("novel_view", "novel_pose"):
         renders = root / "renders" / split
@@ -150,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="cpu-demo", help="the preset the candidates override")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--jobs", type=int, default=1, help="fits side by side (quality mode)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads of each fit")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads of each fit (of each process)")
+    parser.add_argument("--processes", type=int, default=1, help="quality mode: gloo processes of each fit")
     parser.add_argument("--steps", type=int, default=0, help="step-cost mode: iterations per candidate (> 10)")
     parser.add_argument("--repeats", type=int, default=2, help="step-cost mode: rounds over the candidates")
     parser.add_argument("--profile-ops", type=int, default=0,
@@ -177,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
           "|---|---|---|---|---|---|---|", flush=True)
     runs = [(name, overrides, seed) for name, overrides in candidates for seed in args.seeds]
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda run: quality(args.capture, *run, workdir, args.preset, args.threads), runs))
+        rows = list(pool.map(lambda run: quality(args.capture, *run, workdir, args.preset, args.threads, args.processes),
+                             runs))
     print("\n| candidate | seeds | novel view dB (mean) | novel pose dB (mean) |\n|---|---|---|---|")
     for name, _ in candidates:
         mine = [r for r in rows if r["name"] == name]

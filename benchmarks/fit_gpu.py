@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import csv
 import gc
+import gzip
 import math
 import shutil
 import statistics
@@ -68,6 +69,23 @@ def parse_variant(text: str) -> tuple[str, dict]:
         section, _, field = key.strip().partition(".")
         overrides[section][field] = yaml.safe_load(value)
     return name, dict(overrides)
+
+
+def load_compile_cache(path: Path) -> bool:
+    """torch.compile's artifacts of an earlier process (same torch, same GPU architecture) into the local caches."""
+    if not path.is_file():
+        return False
+    torch.compiler.load_cache_artifacts(gzip.decompress(path.read_bytes()))
+    return True
+
+
+def save_compile_cache(path: Path) -> None:
+    """What this process compiled or loaded so far (torch.compiler.save_cache_artifacts), gzipped."""
+    saved = torch.compiler.save_cache_artifacts()
+    if saved is not None:
+        temporary = path.with_name(path.name + ".partial")
+        temporary.write_bytes(gzip.compress(saved[0], compresslevel=6))
+        temporary.replace(path)
 
 
 class PhaseTimer:
@@ -152,6 +170,8 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path, 
             torch.cuda.synchronize()
             marks[iteration] = time.perf_counter()
             graphs[iteration] = counters["stats"]["unique_graphs"]
+        if args.compile_cache is not None and iteration == args.iterations:
+            save_compile_cache(args.compile_cache)  # every LOD's graphs exist by now; the run may not reach its end
         if timer is not None:
             timer.end_iteration()
             timer.active = phase_start <= iteration < ops_start
@@ -281,6 +301,9 @@ def main(argv=None) -> int:
     parser.add_argument("--finest-only", action="store_true", help="budget mode: evaluate the finest LOD only")
     parser.add_argument("--warm-compile", type=int, default=0, help="untimed fit of N iterations before the variants")
     parser.add_argument("--capture-only", action="store_true", help="generate and preprocess the capture, then stop")
+    parser.add_argument("--compile-cache", type=Path, default=None,
+                        help="torch.compile's artifacts: loaded from this file first if it exists, written to it "
+                             "once the first variant's timed window ends (another machine skips most compilation)")
     args = parser.parse_args(argv)
     if not torch.cuda.is_available():
         print("fit_gpu: no CUDA device", file=sys.stderr)
@@ -310,6 +333,8 @@ def main(argv=None) -> int:
     if args.capture_only:
         print(f"capture in {capture}: {stamps or 'kept'}")
         return 0
+    if args.compile_cache is not None:
+        stamps["compile_cache_loaded"] = float(load_compile_cache(args.compile_cache))
     variants = [parse_variant(v) for v in args.variant] or [("profile", {})]
     warm = argparse.Namespace(**{**vars(args), "iterations": max(args.warm_compile, 2), "warmup": 1, "profile_phases": 0,
                                  "profile_ops": 0, "budget": None, "eval_every": None})

@@ -3,7 +3,10 @@
 # one fit per GPU, started together, each `benchmarks/fit_gpu.py --budget` of the same training seconds
 # (pig.avatar.training_clock: compilation, held-out evaluations and checkpoint writes left out), then its novel view
 # and novel pose at the finest LOD with the ground-truth metrics.
-# From the repository root with .gpu/ carried; raw results under $OUT, then committed under benchmarks/gpu_runs/runNN.
+# From the repository root with .gpu/ carried, and .gpu_cache/ where an earlier hold brought back torch.compile's
+# artifacts (VARIANT.bin.gz: fit_gpu.py --compile-cache; most of the 3-4 minutes of compilation skipped); raw results
+# under $OUT (results.tar: every fit's output, train log and JSON; VARIANT.bin.gz: the artifacts for .gpu_cache/),
+# then committed under benchmarks/gpu_runs/runNN.
 #   a SEED BUDGET_S VARIANT...   set-up, the subject (24 cameras x 10 frames at 1330 x 1150; the preset's 16
 #                                generating processes: 32 on a 32-core host took 334 s against 176 s), one fit per
 #                                GPU started detached from a copy under /tmp; a VARIANT may carry overrides after a
@@ -17,13 +20,16 @@ set -u
 RES=/tmp/equal_time
 SRC=/tmp/equal_time_src
 RATES=fit.lr_decoders=3.0e-3,precond.grid_lr=3.0e-2,fit.weight_lpips=0
-collect() {
+collect() {  # one tar of the small files (a call brings back at most 8 files), the artifacts beside it
+  mkdir -p $RES/out
   while read -r run gpu name; do
-    tr '\r' '\n' < $RES/$run.txt | grep -v "%|\|UserWarning\|warn(\|^\s*$" > $OUT/$run.txt
-    [ -s $RES/$run.json ] && cp $RES/$run.json $OUT/
-    [ -s /tmp/s$gpu/fit_$name/train_log.csv ] && cp /tmp/s$gpu/fit_$name/train_log.csv $OUT/${run}_train_log.csv
+    tr '\r' '\n' < $RES/$run.txt | grep -v "%|\|UserWarning\|warn(\|^\s*$" > $RES/out/$run.txt
+    [ -s $RES/$run.json ] && cp $RES/$run.json $RES/out/
+    [ -s /tmp/s$gpu/fit_$name/train_log.csv ] && cp /tmp/s$gpu/fit_$name/train_log.csv $RES/out/${run}_train_log.csv
+    [ -s /tmp/cc/$run.bin.gz ] && cp /tmp/cc/$run.bin.gz $OUT/$name.bin.gz
   done < $RES/names
-  cp $RES/capture.txt $RES/names $OUT/ 2>/dev/null
+  cp $RES/capture.txt $RES/names $RES/out/ 2>/dev/null
+  tar -cf $OUT/results.tar.partial -C $RES/out . && mv $OUT/results.tar.partial $OUT/results.tar
 }
 finished() {
   while read -r run _; do [ -s $RES/$run.json ] || return 1; done < $RES/names
@@ -34,7 +40,7 @@ case $1 in
       nvidia-smi --query-gpu=index,name,memory.total --format=csv
       gpus=$(nvidia-smi -L | wc -l)
       [ $# -le $gpus ] || { echo "$# fits for $gpus GPUs"; exit 1; }
-      rm -rf $SRC $RES /tmp/s /tmp/s[0-9]*; mkdir -p $RES; cp -r . $SRC; cd $SRC
+      rm -rf $SRC $RES /tmp/s /tmp/s[0-9]* /tmp/cc; mkdir -p $RES /tmp/cc; cp -r . $SRC; cd $SRC
       export PYTHONPATH=/tmp/site:$SRC TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
       ( time python3 benchmarks/fit_gpu.py --workdir /tmp/s --seed $seed --frames 10 --capture-only ) > $RES/capture.txt 2>&1
       tail -4 $RES/capture.txt
@@ -43,14 +49,17 @@ case $1 in
         name=${spec%%:*}; extra=${spec#$name}; extra=${extra#:}; run=${name}_$gpu
         echo "$run $gpu $name" >> $RES/names
         mkdir -p /tmp/s$gpu; cp -r /tmp/s/capture /tmp/s$gpu/
+        [ -f .gpu_cache/$name.bin.gz ] && cp .gpu_cache/$name.bin.gz /tmp/cc/$run.bin.gz
         CUDA_VISIBLE_DEVICES=$gpu setsid nohup python3 benchmarks/fit_gpu.py --workdir /tmp/s$gpu --seed $seed \
           --frames 10 --reuse-capture --iterations 300 --warmup 200 --budget $budget --eval-every 1000 --finest-only \
-          --variant "$name:$RATES${extra:+,$extra}" --json $RES/$run.json > $RES/$run.txt 2>&1 < /dev/null &
+          --variant "$name:$RATES${extra:+,$extra}" --compile-cache /tmp/cc/$run.bin.gz --json $RES/$run.json \
+          > $RES/$run.txt 2>&1 < /dev/null &
         echo "started $run ($name${extra:+ with $extra}) on GPU $gpu at $(date +%T)"; gpu=$((gpu + 1))
       done ;;
   w)  end=$((SECONDS + ${2:-570}))
       while [ $SECONDS -lt $end ] && ! finished; do collect; sleep 4; done
       collect; date +%T; nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader
-      while read -r run _; do echo "== $run"; grep "^fit /tmp" $OUT/$run.txt | tail -1
-        grep "^\[evaluate\] novel_\w* lod[0-9]*: PSNR [0-9]" $OUT/$run.txt; done < $RES/names ;;
+      ls -la $OUT
+      while read -r run _; do echo "== $run"; grep "^fit /tmp" $RES/out/$run.txt | tail -1
+        grep "^\[evaluate\] novel_\w* lod[0-9]*: PSNR [0-9]" $RES/out/$run.txt; done < $RES/names ;;
 esac
