@@ -1,10 +1,18 @@
 """Shared fixtures. Tests run on the CPU in float64 where they compare against references."""
 import os
+import signal
 
 import pytest
 import torch
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+
+# Some tests press Ctrl-C (SIGINT to a child's process group) or rely on torch's spawn ending a fit's ranks with
+# SIGINT when their parent dies. A session started as a background job of a non-interactive shell (`nohup pytest &`
+# in a script) inherits SIGINT ignored, and so would every process it starts, where Ctrl-C then does nothing:
+# handle it again here, so that the processes the tests start begin with its default action, as in a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture

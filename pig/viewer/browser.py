@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -60,7 +62,8 @@ class HeadlessChromium:
         self._log = open(profile / "chromium.log", "wb")
         self._process = subprocess.Popen([executable, *FLAGS, *GL_FLAGS[gl], f"--user-data-dir={profile}",
                                           "--remote-debugging-port=0", f"--window-size={width},{height}", "about:blank"],
-                                         stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT)
+                                         stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT,
+                                         start_new_session=True)  # its helpers in a group of their own: see close
         self._next_id = 0
         try:
             port = self._devtools_port(profile / "DevToolsActivePort", timeout_s)
@@ -160,6 +163,12 @@ class HeadlessChromium:
             except subprocess.TimeoutExpired:
                 self._process.kill()
                 self._process.wait()
+        # Chromium's helpers (zygote, GPU, renderer) can outlive its main process by a moment and still write into
+        # the profile, which the cleanup below would then fail to remove ("Directory not empty"): end the group.
+        try:
+            os.killpg(self._process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
         self._log.close()
         self._profile.cleanup()
 
