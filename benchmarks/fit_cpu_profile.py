@@ -25,56 +25,17 @@ from pathlib import Path
 import torch
 import yaml
 
+from fit_gpu import PhaseTimer
 from pig.config import load_preset
 
-# Forward submodules timed by hooks (outermost only), as benchmarks/fit_gpu.py's PhaseTimer names them.
-MODULES = {"LatentGrid": "model.grid", "PreconditionedTensor": "model.anchor_solve", "BodyModel": "model.body",
-           "AnchorDecoder": "model.decoders", "BodyRefiner": "model.refiner"}
 # Backward autograd nodes by substring of their name -> part (first match wins); the rest is "backward.other".
 BACKWARD_PARTS = [("_BandComposite", "backward.compositor"), ("Solve", "backward.solves"),
                   ("GridSampler", "backward.grid_lookup"), ("Addmm", "backward.matmuls"), ("Mm", "backward.matmuls"),
                   ("Convolution", "backward.loss_blur"), ("Index", "backward.gathers"), ("Gather", "backward.gathers")]
 
 
-class CpuPhases:
-    """Wall time per phase and forward submodule while `active` (CPU: no device to synchronise)."""
-
-    def __init__(self):
-        self.active = False
-        self.depth = 0
-        self.totals: dict[str, float] = defaultdict(float)
-        self._starts: list[float] = []
-        self._hooks = [torch.nn.modules.module.register_module_forward_pre_hook(self._pre),
-                       torch.nn.modules.module.register_module_forward_hook(self._post)]
-
-    @contextmanager
-    def __call__(self, name: str):
-        if not self.active:
-            yield
-            return
-        t0 = time.perf_counter()
-        yield
-        self.totals[name] += time.perf_counter() - t0
-
-    def _pre(self, module, args):
-        if self.active and type(module).__name__ in MODULES:
-            self.depth += 1
-            if self.depth == 1:
-                self._starts.append(time.perf_counter())
-
-    def _post(self, module, args, output):
-        if self.active and type(module).__name__ in MODULES:
-            if self.depth == 1:
-                self.totals[MODULES[type(module).__name__]] += time.perf_counter() - self._starts.pop()
-            self.depth -= 1
-
-    def close(self):
-        for hook in self._hooks:
-            hook.remove()
-
-
 @contextmanager
-def _timed_render(phases: CpuPhases):
+def _timed_render(phases: PhaseTimer):
     """The render phase split into projection and compositor by wrapping the two functions api.py calls."""
     import pig.render.api as api
 
@@ -132,17 +93,17 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(tempfile.mkdtemp(prefix="pig_fit_cpu_profile_"))
     (workdir / "preset.yaml").write_text(yaml.safe_dump(preset))
 
-    phases = CpuPhases()
+    phases = PhaseTimer(synchronize=lambda: None)  # the CPU: nothing to wait for
     profile = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
     marks = {}
 
     def tick(i: int) -> None:
+        phases.end_iteration()
+        phases.active = args.skip <= i < args.steps
         if i == args.skip:
             marks["start"] = time.perf_counter()
-            phases.active = True
         if i == args.steps:
             marks["stop"] = time.perf_counter()
-            phases.active = False
 
     try:
         with _timed_render(phases):
@@ -164,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
 
     timed = args.steps - args.skip
     total = marks["stop"] - marks["start"]
-    per = {name: seconds / timed for name, seconds in phases.totals.items()}
+    per = {name: seconds / timed for name, seconds in phases.totals_s().items()}
     model_parts = sum(v for k, v in per.items() if k.startswith("model."))
     per["model.transport_and_splats"] = per.get("model", 0.0) - model_parts
     render_parts = per.get("render.projection", 0.0) + per.get("render.compositor", 0.0)

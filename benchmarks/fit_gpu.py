@@ -44,6 +44,7 @@ import time
 from collections import defaultdict
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable
 
 import torch
 import yaml
@@ -89,9 +90,11 @@ def save_compile_cache(path: Path) -> None:
 
 
 class PhaseTimer:
-    """Wall time of fit phases and avatar submodules with the device synchronised at each boundary, while `active`."""
+    """Wall time of fit phases and avatar submodules with the device synchronised at each boundary, while `active`
+    (`synchronize`: the CUDA device's by default; a no-op on the CPU)."""
 
-    def __init__(self):
+    def __init__(self, synchronize: Callable[[], None] = torch.cuda.synchronize):
+        self.synchronize = synchronize
         self.active = False
         self.depth = 0
         self.iterations: list[dict[str, float]] = []
@@ -105,23 +108,23 @@ class PhaseTimer:
         if not self.active:
             yield
             return
-        torch.cuda.synchronize()
+        self.synchronize()
         t0 = time.perf_counter()
         yield
-        torch.cuda.synchronize()
+        self.synchronize()
         self.current[name] += time.perf_counter() - t0
 
     def _pre(self, module, args):
         if self.active and type(module).__name__ in MODULES:
             self.depth += 1
             if self.depth == 1:
-                torch.cuda.synchronize()
+                self.synchronize()
                 self._starts.append(time.perf_counter())
 
     def _post(self, module, args, output):
         if self.active and type(module).__name__ in MODULES:
             if self.depth == 1:
-                torch.cuda.synchronize()
+                self.synchronize()
                 self.current[MODULES[type(module).__name__]] += time.perf_counter() - self._starts.pop()
             self.depth -= 1
 
@@ -129,6 +132,10 @@ class PhaseTimer:
         if self.active:
             self.iterations.append(dict(self.current))
         self.current = defaultdict(float)
+
+    def totals_s(self) -> dict[str, float]:
+        """Seconds per phase summed over the recorded iterations."""
+        return {k: sum(it.get(k, 0.0) for it in self.iterations) for k in {k for it in self.iterations for k in it}}
 
     def medians_ms(self) -> dict[str, float]:
         names = sorted({k for it in self.iterations for k in it})

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shlex
-import shutil
 import signal
 import subprocess
 import sys
@@ -14,11 +13,10 @@ from pathlib import Path
 
 import psutil
 from preset_files import write_test_preset
-from test_plan import _hold
-from test_workflow import PRESET, REPO, SUBJECT, edit_yaml, recorded  # noqa: F401  (recorded: the fixture)
+from test_plan import workflow_waiting_for_a_gpu
+from test_workflow import REPO, recorded  # noqa: F401  (recorded: the fixture)
 
 from pig._outputs import OutputError, output_lock
-from pig.gpu_slots import DEVICES_ENV, LOCK_DIR_ENV, lock_path
 
 # As the workflow marks its jobs' environment (workflow/rules/common.smk; the workflow test below checks it).
 JOB_ENVIRONMENT = {"PIG_WORKFLOW_JOB": "1"}
@@ -93,17 +91,8 @@ def test_a_workflow_job_whose_shell_is_killed_leaves_no_launcher_waiting_for_a_s
                                                                                      monkeypatch):
     """A fit job of the workflow waits for the one stand-in GPU (held by the test); its shell is killed. Its slot
     launcher ends too: an orphan would take the slot once free and run the fit beside the rerun's."""
-    work = tmp_path / "work dir"
-    shutil.copytree(recorded, work, symlinks=True)
-    edit_yaml(work / PRESET, lambda p: p["resources"].update(fit_avatar={"gpu": 1}))
-    edit_yaml(work / "config" / "config.yaml", lambda c: c.update(variants=["pig", "no_offsets"]))
-    monkeypatch.setenv(DEVICES_ENV, "g0")
-    monkeypatch.setenv(LOCK_DIR_ENV, str(tmp_path / "locks"))
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     monkeypatch.delenv("PIG_WORKFLOW_JOB", raising=False)  # the workflow sets it, nothing else
-    (tmp_path / "locks").mkdir()
-    held = _hold(lock_path(tmp_path / "locks", "g0"))
-    log = work / "results" / "thuman4" / SUBJECT / "no_offsets" / "logs" / "fit.log"
+    work, held, log = workflow_waiting_for_a_gpu(recorded, tmp_path, monkeypatch)
     argv = [sys.executable, "-m", "snakemake", "all_tables", "--cores", "2", "--snakefile", str(REPO / "Snakefile"),
             "--directory", str(work)]
     with open(tmp_path / "snakemake.out", "w") as stream:

@@ -239,6 +239,21 @@ def _hold(path: Path):
     return fd
 
 
+def workflow_waiting_for_a_gpu(recorded: Path, tmp_path: Path, monkeypatch) -> tuple[Path, int, Path]:
+    """The recorded workflow copied to `tmp_path`, with a second variant whose fit asks for a GPU, one stand-in
+    device whose slot this test holds: (the work folder, the held lock's fd, that fit's log)."""
+    work = tmp_path / "work dir"
+    shutil.copytree(recorded, work, symlinks=True)
+    edit_yaml(work / PRESET, lambda p: p["resources"].update(fit_avatar={"gpu": 1}))
+    edit_yaml(work / "config" / "config.yaml", lambda c: c.update(variants=["pig", "no_offsets"]))
+    monkeypatch.setenv(DEVICES_ENV, "g0")
+    monkeypatch.setenv(LOCK_DIR_ENV, str(tmp_path / "locks"))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    (tmp_path / "locks").mkdir()
+    held = _hold(lock_path(tmp_path / "locks", "g0"))
+    return work, held, work / "results" / "thuman4" / SUBJECT / "no_offsets" / "logs" / "fit.log"
+
+
 # A safety net only: each wait below ends on what the code writes or on the process's exit, never on a deadline that a
 # loaded machine could miss. (The launcher's wait for a slot, a sleep, ends at once on SIGINT, load or not.)
 SAFETY_S = 900
@@ -255,16 +270,7 @@ def _wait_for(condition, process: subprocess.Popen, output: Path) -> None:
 def test_a_killed_run_resumes_without_redoing_finished_fits(recorded, tmp_path, monkeypatch):
     """all_tables with a second variant: its fit starts (and waits for the one stand-in GPU, which the test holds),
     Snakemake is interrupted; the next run schedules that fit again, with no manual step, and not the finished one."""
-    work = tmp_path / "work dir"
-    shutil.copytree(recorded, work, symlinks=True)
-    edit_yaml(work / PRESET, lambda p: p["resources"].update(fit_avatar={"gpu": 1}))
-    edit_yaml(work / "config" / "config.yaml", lambda c: c.update(variants=["pig", "no_offsets"]))
-    monkeypatch.setenv(DEVICES_ENV, "g0")
-    monkeypatch.setenv(LOCK_DIR_ENV, str(tmp_path / "locks"))
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
-    (tmp_path / "locks").mkdir()
-    held = _hold(lock_path(tmp_path / "locks", "g0"))
-    log = work / "results" / "thuman4" / SUBJECT / "no_offsets" / "logs" / "fit.log"
+    work, held, log = workflow_waiting_for_a_gpu(recorded, tmp_path, monkeypatch)
     output = tmp_path / "killed.out"
     argv = [sys.executable, "-m", "snakemake", "all_tables", "--cores", "2", "--snakefile", str(REPO / "Snakefile"),
             "--directory", str(work)]

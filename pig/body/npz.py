@@ -69,13 +69,7 @@ def read_npz_bytes(data: bytes, source: str, error: type[Exception], expected: s
 
 def _read_archive(handle, source, error, expected, keys, pickled, max_bytes, declared=None) -> dict[str, np.ndarray]:
     try:
-        head = handle.read(4)
-        if head not in ZIP_MAGIC:
-            shown = f"starts with {head!r}" if head else "is empty"
-            raise error(f"{source}: not a valid npz archive (the file {shown}); expected {expected}, "
-                        "a zip of .npy arrays as numpy.savez writes")
-        handle.seek(0)
-        with zipfile.ZipFile(handle) as archive:
+        with _zip_archive(handle, source, error, expected) as archive:
             members = {name[:-4]: name for name in archive.namelist() if name.endswith(".npy")}
             wanted = members if keys is None else [k for k in keys if k in members]
             return {key: _member(archive, members[key], key in pickled, source, error, max_bytes, declared)
@@ -128,8 +122,8 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
                         f"({err}); they are not loaded because loading them could run code") from None
 
 
-def _zip_archive(handle, path: Path, error: type[Exception], expected: str) -> zipfile.ZipFile:
-    """The open file `handle` of `path` as a zip archive, after its first bytes showed it is one (`error` otherwise)."""
+def _zip_archive(handle, path, error: type[Exception], expected: str) -> zipfile.ZipFile:
+    """The open file `handle` of `path` (a path, or a name in errors) as a zip archive, after its first bytes showed it is one (`error` otherwise)."""
     head = handle.read(4)
     if head not in ZIP_MAGIC:
         shown = f"starts with {head!r}" if head else "is empty"
