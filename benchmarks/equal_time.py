@@ -101,10 +101,14 @@ def read_off(curve: list[tuple[float, float]], seconds: float) -> float:
 def cell(values: list, decimals: int) -> str:
     if isinstance(values[0], tuple):
         return " / ".join(cell([v[i] for v in values], decimals) for i in range(len(values[0])))
-    if any(math.isnan(v) for v in values):
+    known = [v for v in values if not math.isnan(v)]
+    if not known:
         return "-"
-    mean = float(np.mean(values))
-    return f"{mean:.{decimals}f}" + (f" ± {(max(values) - min(values)) / 2:.{decimals}f}" if len(values) > 1 else "")
+    text = f"{float(np.mean(known)):.{decimals}f}"
+    if len(known) > 1:
+        text += f" ± {(max(known) - min(known)) / 2:.{decimals}f}"
+    # A fit whose split never came back (device time ran out) leaves the others' mean, said as such.
+    return text + (f" ({len(known)} of {len(values)})" if len(known) < len(values) else "")
 
 
 def table(fits: list[dict]) -> str:

@@ -1,4 +1,5 @@
 """benchmarks/equal_time.py: a fit read from its train log and printed lines agrees with the same fit's JSON."""
+import copy
 import math
 import sys
 from pathlib import Path
@@ -46,3 +47,15 @@ def test_a_missing_split_prints_a_dash():
     row = [line for line in table([fit]).splitlines() if "| no_precond |" in line][0]
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[5] == f"{fit['final']['novel_view']['psnr']:.2f}" and cells[7] == "-" and cells[8] == "-"
+
+
+def test_replicates_average_the_splits_that_came_back_and_say_how_many():
+    whole = fit_from_log(RUNS, LOG_ENTRY)
+    cut_short = copy.deepcopy(whole)
+    cut_short["replicate"] = 2
+    cut_short["final"]["novel_pose"] = dict.fromkeys(SUMMARY_KEYS, math.nan)
+    cut_short["final"]["novel_view"]["psnr"] = whole["final"]["novel_view"]["psnr"] - 1.0
+    row = [line for line in table([whole, cut_short]).splitlines() if "| no_precond |" in line][0]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[5] == f"{whole['final']['novel_view']['psnr'] - 0.5:.2f} ± 0.50"
+    assert cells[7] == f"{whole['final']['novel_pose']['psnr']:.2f} (1 of 2)"
