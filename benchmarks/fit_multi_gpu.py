@@ -155,8 +155,9 @@ def run_one(args) -> int:
         fit_parallel(capture, fit_dir, str(preset), "pig", gpus, "cuda", rank_hooks=hooks)
     with open(fit_dir / "train_log.csv", newline="") as file:
         last = list(csv.DictReader(file))[-1]
-    record = {"gpus": gpus, "sharded": sharded, "name": name, "fit_s": time.perf_counter() - t0, "heldout_psnr": float(last["heldout_psnr"]),
-              "train_s": float(last["train_s"]), "iterations": int(last["iteration"])}
+    record = {"gpus": gpus, "sharded": sharded, "name": name, "fit_s": time.perf_counter() - t0,
+              "heldout_psnr": float(last["heldout_psnr"]), "train_s": float(last["train_s"]),
+              "iterations": int(last["iteration"])}
     (out / "run.json").write_text(json.dumps(record))
     return 0
 
@@ -220,8 +221,8 @@ def main(argv=None) -> int:
         for repeat in range(0 if args.collect else args.repeats):
             for gpus, mode in runs(args.gpus, args.shard_solves):  # alternating, so that a drift touches each alike
                 tag = f"{time.strftime('%H%M%S')}_{repeat}"
-                subprocess.run(base + ["--run", str(gpus), "--shard-solves", mode, "--parity", str(args.parity), "--tag",
-                                       tag], check=True)
+                subprocess.run(base + ["--run", str(gpus), "--shard-solves", mode, "--parity", str(args.parity),
+                                       "--tag", tag], check=True)
         records = [json.loads(p.read_text()) for p in sorted(args.workdir.glob("parity_*gpu_*/run.json"))]
         print(f"\nHeld-out novel-view PSNR after {args.parity} `paper` iterations (LPIPS on random weights), every "
               f"parity run in {args.workdir}")
@@ -239,7 +240,8 @@ def main(argv=None) -> int:
     for gpus, mode in runs(args.gpus, args.shard_solves):
         if not args.collect:
             subprocess.run(base + ["--run", str(gpus), "--shard-solves", mode, "--iterations", str(args.iterations),
-                                   "--warmup", str(args.warmup), "--profile-phases", str(args.profile_phases)], check=True)
+                                   "--warmup", str(args.warmup), "--profile-phases", str(args.profile_phases)],
+                           check=True)
         results.append(gather(args.workdir, gpus, mode))
         r = results[-1]
         print(f"{label(r)}: {r['ms']:.1f} ms/it, peak {max(r['peak_gib']):.2f} GiB per GPU", flush=True)
@@ -271,17 +273,18 @@ def main(argv=None) -> int:
         # Amdahl: these do not shrink with the views per rank. Without sharding the backward's solves lie inside
         # `backward` (not counted here); with it, in solve_backward (counted).
         print("\nCap from the parts not split by views alone: " + ", ".join(
-            f"{label(r)}: step >= {rep:.1f} ms (speed-up <= {base_ms / rep:.1f}x)" for r, rep in zip(results, replicated)
-            if rep > 0))
+            f"{label(r)}: step >= {rep:.1f} ms (speed-up <= {base_ms / rep:.1f}x)"
+            for r, rep in zip(results, replicated) if rep > 0))
         several = [r for r in results if r["gpus"] > 1]
         if several:
-            print(f"\nThe phases the solves move between, per rank (median ms of the same {args.profile_phases} iterations; "
-                  "solve_*: the rank's own solves, *.own, and the wait for the others' broadcasts)")
+            print(f"\nThe phases the solves move between, per rank (median ms of the same {args.profile_phases} "
+                  "iterations; solve_*: the rank's own solves, *.own, and the wait for the others' broadcasts)")
             print("| run | rank | " + " | ".join(SOLVE_PHASES) + " |")
             print("|---|---|" + "---|" * len(SOLVE_PHASES))
             for r in several:
                 for rank, phases in enumerate(r["rank_phases_ms"]):
-                    print(f"| {label(r)} | {rank} | " + " | ".join(f"{phases.get(n, 0.0):.2f}" for n in SOLVE_PHASES) + " |")
+                    cells = " | ".join(f"{phases.get(n, 0.0):.2f}" for n in SOLVE_PHASES)
+                    print(f"| {label(r)} | {rank} | {cells} |")
     return 0
 
 

@@ -168,7 +168,8 @@ def solve_costs(tensors: list[PreconditionedTensor]) -> list[float]:
     multiply-adds per value and transform (pig.field.lattice_solve); any other system (the anchors' KNN solve)
     counts as the costliest grid level (on an H100 the `paper` preset's CG took 3.4 ms, forward + backward, against
     ~3.8 ms for the finest level's part of the DCT solves' 6.3: benchmarks/NOTES.md, runs 17-18)."""
-    lattice = {id(t): float(t.param.numel() * sum(t.system.shape)) for t in tensors if isinstance(t.system, LatticeSystem)}
+    lattice = {id(t): float(t.param.numel() * sum(t.system.shape)) for t in tensors
+               if isinstance(t.system, LatticeSystem)}
     other = max(lattice.values(), default=1.0)
     return [lattice.get(id(t), other) for t in tensors]
 
@@ -206,7 +207,8 @@ class SolveShards:
         `phase` (a profiler's hook) times this rank's own solves as "solve_forward.own"."""
         shared = [(t, owner) for t, owner in self.shares if t.form == "substitute"]
         with (phase or _untimed)("solve_forward.own"):
-            offsets = [t.solve_offset() if owner == self.rank else torch.empty_like(t.param) for t, owner in shared]
+            offsets = [t.solve_offset().contiguous() if owner == self.rank else torch.empty_like(t.param)
+                       for t, owner in shared]
         works = [dist.broadcast(offset, owner, async_op=True) for offset, (_, owner) in zip(offsets, shared)]
         for work, offset, (tensor, _) in zip(works, offsets, shared):
             work.wait()

@@ -472,7 +472,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             report.print_line(0, 0.0)
 
         reducer = None if parallel is None else parallel.reduce_gradients(model)
-        shards = SolveShards(model, parallel.rank, parallel.world) if parallel is not None and fit_cfg.shard_solves else None
+        shards = (SolveShards(model, parallel.rank, parallel.world) if parallel is not None and fit_cfg.shard_solves
+                  else None)  # each preconditioned solve on one rank
         clock = TrainingClock(wall_before, train_before, now)
         last_save = now()
         waits = []
