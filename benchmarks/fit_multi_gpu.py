@@ -29,7 +29,7 @@ stays within a 10-minute limit (the first also makes the capture; compilation ta
     python3 benchmarks/fit_multi_gpu.py --gpus 2 --shard-solves off --iterations 120 --warmup 40 --profile-phases 10
     python3 benchmarks/fit_multi_gpu.py --gpus 2 --shard-solves on --iterations 120 --warmup 40 --profile-phases 10
     (the same for --gpus 4)
-    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 4 --shard-solves off on --iterations 120 --warmup 40 \
+    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 4 --shard-solves off on --iterations 120 --warmup 40 \\
         --profile-phases 10
     python3 benchmarks/fit_multi_gpu.py --gpus 1 --parity 3000 --repeats 1   # each GPU count twice
     python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --parity 3000    # the parity table
