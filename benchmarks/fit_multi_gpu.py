@@ -9,6 +9,11 @@ refiner, optimiser step) and what the ranks share out (decoders, body, render, l
 runs in a process of its own (a fresh device and fresh peak-memory counters). One GPU runs today's single-process
 fit; N > 1 the data-parallel one.
 
+`--shard-solves off on`: each GPU count above 1 runs twice, with the preconditioned solves on every rank (`off`,
+`fit.shard_solves: false`) and each solved by one rank and broadcast (`on`, pig.avatar.distributed.SolveShards);
+the phase table then has a row per rank for the phases the solves move between (model.grid, model.anchor_solve,
+solve_forward and its rank's own solves solve_forward.own, backward, reduce, solve_backward(.own), step).
+
 `--parity ITERATIONS` (with `--repeats R`): R fits of that many iterations per GPU count, each ending with the
 held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick).
 
@@ -16,13 +21,16 @@ NVLink multicast stays off in this benchmark's processes (it must on the GPU mac
 NCCL's NVLS collectives (NCCL_NVLS_ENABLE=0), torch's symmetric-memory multicast (TORCH_SYMM_MEM_DISABLE_MULTICAST=1)
 and NVSHMEM's (NVSHMEM_DISABLE_NVLS=1); set here, for this script and the processes it starts only (docs/gpu.md).
 
-Run on a 2-GPU machine from the repository root (`.gpu` carried), one GPU count per command so that each stays
-within a 10-minute limit (the first also makes the capture; compilation takes minutes the first time per count):
+Run on a 4-GPU machine from the repository root (`.gpu` carried), one GPU count and mode per command so that each
+stays within a 10-minute limit (the first also makes the capture; compilation takes minutes the first time per count):
 
     bash .gpu/device-setup.sh && export PYTHONPATH=/tmp/site:$PWD TORCH_EXTENSIONS_DIR=/tmp/text
     python3 benchmarks/fit_multi_gpu.py --gpus 1 --iterations 120 --warmup 40 --profile-phases 10
-    python3 benchmarks/fit_multi_gpu.py --gpus 2 --iterations 120 --warmup 40 --profile-phases 10
-    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --gpus 2 --shard-solves off --iterations 120 --warmup 40 --profile-phases 10
+    python3 benchmarks/fit_multi_gpu.py --gpus 2 --shard-solves on --iterations 120 --warmup 40 --profile-phases 10
+    (the same for --gpus 4)
+    python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 4 --shard-solves off on --iterations 120 --warmup 40 \\
+        --profile-phases 10
     python3 benchmarks/fit_multi_gpu.py --gpus 1 --parity 3000 --repeats 1   # each GPU count twice
     python3 benchmarks/fit_multi_gpu.py --collect --gpus 1 2 --parity 3000    # the parity table
 
@@ -57,6 +65,11 @@ from fit_gpu import PhaseTimer, main as fit_gpu_main  # noqa: E402
 
 # Parts of a step that every rank computes whole, whatever the GPU count (the rest is shared out by views).
 REPLICATED = ("model.grid", "model.anchor_solve", "model.refiner", "step")
+# With the solves sharded: their owners' solves and the broadcasts, which the view count does not shrink either.
+SHARDED_SOLVES = ("solve_forward", "solve_backward")
+# The phases the solves move between, printed per rank.
+SOLVE_PHASES = ("model.grid", "model.anchor_solve", "solve_forward", "solve_forward.own", "backward", "reduce",
+                "solve_backward", "solve_backward.own", "step")
 CAPTURE = "data/capture"  # under --workdir: benchmarks/fit_gpu.py's capture, made once, kept for later commands
 
 
@@ -101,12 +114,12 @@ def rank_hooks(out: str, warmup: int, iterations: int, profile: int, rank: int):
     return RankHooks(on_iteration=probe, phase=probe.phase)
 
 
-def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, seed: int) -> Path:
+def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, seed: int, shard_solves: bool) -> Path:
     """The `paper` preset cut to `iterations`, LPIPS on random weights, no checkpoint inside the run."""
     preset = load_preset("paper")
     preset.pop("_path")
     preset["fit"].update(iterations=iterations, eval_every=eval_every, checkpoint_minutes=10**6, lpips_weights="random",
-                         seed=seed)
+                         seed=seed, shard_solves=shard_solves)
     path = workdir / f"preset_{name}.yaml"
     path.write_text(yaml.safe_dump(preset))
     return path
@@ -118,18 +131,20 @@ def run_one(args) -> int:
     from pig.avatar.training import fit
 
     gpus, workdir = args.run, args.workdir
+    [mode] = args.shard_solves
+    sharded = mode == "on" and gpus > 1
     capture = workdir / CAPTURE
     if args.parity:
-        name = f"parity_{gpus}gpu_{args.tag}"
+        name = f"parity_{run_name(gpus, mode)}_{args.tag}"
         iterations, eval_every, hooks = args.parity, args.parity, None
     else:
-        name = f"scaling_{gpus}gpu"
+        name = f"scaling_{run_name(gpus, mode)}"
         iterations, eval_every = args.iterations + args.profile_phases, 10**9
         hooks = functools.partial(rank_hooks, str(workdir / name), args.warmup, args.iterations, args.profile_phases)
     out = workdir / name
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-    preset = write_preset(workdir, name, iterations, eval_every, args.seed)
+    preset = write_preset(workdir, name, iterations, eval_every, args.seed, sharded)
     fit_dir = out / "fit"
     t0 = time.perf_counter()
     if gpus == 1:
@@ -140,17 +155,33 @@ def run_one(args) -> int:
         fit_parallel(capture, fit_dir, str(preset), "pig", gpus, "cuda", rank_hooks=hooks)
     with open(fit_dir / "train_log.csv", newline="") as file:
         last = list(csv.DictReader(file))[-1]
-    record = {"gpus": gpus, "name": name, "fit_s": time.perf_counter() - t0, "heldout_psnr": float(last["heldout_psnr"]),
-              "train_s": float(last["train_s"]), "iterations": int(last["iteration"])}
+    record = {"gpus": gpus, "sharded": sharded, "name": name, "fit_s": time.perf_counter() - t0,
+              "heldout_psnr": float(last["heldout_psnr"]), "train_s": float(last["train_s"]),
+              "iterations": int(last["iteration"])}
     (out / "run.json").write_text(json.dumps(record))
     return 0
 
 
-def gather(workdir: Path, gpus: int) -> dict:
-    out = workdir / f"scaling_{gpus}gpu"
-    ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"))]
+def run_name(gpus: int, mode: str) -> str:
+    """A run's folder name: the GPU count, and whether the solves are sharded (one GPU has nothing to shard)."""
+    return f"{gpus}gpu" + ("_sharded" if mode == "on" and gpus > 1 else "")
+
+
+def runs(gpus: list[int], modes: list[str]) -> list[tuple[int, str]]:
+    """(GPU count, --shard-solves mode) of each run, in order; one GPU once, whatever the modes."""
+    return [(g, m) for g in gpus for m in (modes[:1] if g == 1 else modes)]
+
+
+def gather(workdir: Path, gpus: int, mode: str) -> dict:
+    out = workdir / f"scaling_{run_name(gpus, mode)}"
+    ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"), key=lambda p: int(p.stem[4:]))]
     return {"gpus": gpus, "ms": max(r["ms"] for r in ranks), "peak_gib": [r["peak_gib"] for r in ranks],
-            "phases_ms": ranks[0]["phases_ms"], **json.loads((out / "run.json").read_text())}
+            "phases_ms": ranks[0]["phases_ms"], "rank_phases_ms": [r["phases_ms"] for r in ranks], "sharded": False,
+            **json.loads((out / "run.json").read_text())}
+
+
+def label(r: dict) -> str:
+    return f"{r['gpus']} GPU" + (" sharded" if r["sharded"] else "")
 
 
 def main(argv=None) -> int:
@@ -167,6 +198,9 @@ def main(argv=None) -> int:
     parser.add_argument("--parity", type=int, default=0, metavar="ITERATIONS", help="parity fits of this length")
     parser.add_argument("--repeats", type=int, default=2, help="parity fits per GPU count")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--shard-solves", nargs="+", choices=("off", "on"), default=["off"],
+                        help="fit.shard_solves of the runs above one GPU: off (every rank solves), on (each solve on "
+                             "one rank), or both, each a run of its own (default: off)")
     parser.add_argument("--collect", action="store_true",
                         help="run nothing: the tables of the runs already in --workdir (one command per GPU count where "
                              "they would not fit a time limit together)")
@@ -185,58 +219,72 @@ def main(argv=None) -> int:
     base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed)]
     if args.parity:
         for repeat in range(0 if args.collect else args.repeats):
-            for gpus in args.gpus:  # alternating counts, so that a drift of the machine touches each alike
+            for gpus, mode in runs(args.gpus, args.shard_solves):  # alternating, so that a drift touches each alike
                 tag = f"{time.strftime('%H%M%S')}_{repeat}"
-                subprocess.run(base + ["--run", str(gpus), "--parity", str(args.parity), "--tag", tag], check=True)
-        runs = [json.loads(p.read_text()) for p in sorted(args.workdir.glob("parity_*gpu_*/run.json"))]
+                subprocess.run(base + ["--run", str(gpus), "--shard-solves", mode, "--parity", str(args.parity),
+                                       "--tag", tag], check=True)
+        records = [json.loads(p.read_text()) for p in sorted(args.workdir.glob("parity_*gpu_*/run.json"))]
         print(f"\nHeld-out novel-view PSNR after {args.parity} `paper` iterations (LPIPS on random weights), every "
               f"parity run in {args.workdir}")
         print("| GPUs | run | held-out PSNR dB | train s | wall s |")
         print("|---|---|---|---|---|")
-        for r in sorted(runs, key=lambda r: (r["gpus"], r["name"])):
+        for r in sorted(records, key=lambda r: (r["gpus"], r["name"])):
             print(f"| {r['gpus']} | {r['name']} | {r['heldout_psnr']:.3f} | {r['train_s']:.0f} | {r['fit_s']:.0f} |")
-        for gpus in sorted({r["gpus"] for r in runs}):
-            values = [r["heldout_psnr"] for r in runs if r["gpus"] == gpus]
-            print(f"{gpus} GPU(s): mean {statistics.mean(values):.3f} dB, spread (max - min) {max(values) - min(values):.3f} "
-                  f"dB over {len(values)} run(s)")
+        for kind in sorted({(r["gpus"], r.get("sharded", False)) for r in records}):
+            values = [r["heldout_psnr"] for r in records if (r["gpus"], r.get("sharded", False)) == kind]
+            print(f"{label({'gpus': kind[0], 'sharded': kind[1]})}: mean {statistics.mean(values):.3f} dB, spread "
+                  f"(max - min) {max(values) - min(values):.3f} dB over {len(values)} run(s)")
         return 0
 
     results = []
-    for gpus in args.gpus:
+    for gpus, mode in runs(args.gpus, args.shard_solves):
         if not args.collect:
-            subprocess.run(base + ["--run", str(gpus), "--iterations", str(args.iterations), "--warmup", str(args.warmup),
-                                   "--profile-phases", str(args.profile_phases)], check=True)
-        results.append(gather(args.workdir, gpus))
+            subprocess.run(base + ["--run", str(gpus), "--shard-solves", mode, "--iterations", str(args.iterations),
+                                   "--warmup", str(args.warmup), "--profile-phases", str(args.profile_phases)],
+                           check=True)
+        results.append(gather(args.workdir, gpus, mode))
         r = results[-1]
-        print(f"{gpus} GPU(s): {r['ms']:.1f} ms/it, peak {max(r['peak_gib']):.2f} GiB per GPU", flush=True)
+        print(f"{label(r)}: {r['ms']:.1f} ms/it, peak {max(r['peak_gib']):.2f} GiB per GPU", flush=True)
     base_ms = results[0]["ms"]
     print(f"\ndevice: {torch.cuda.get_device_name()}; `paper` preset, LPIPS on random weights; capture "
           f"{args.cameras} cameras x {args.frames} frames; {args.iterations - args.warmup} timed iterations after "
           f"{args.warmup}; NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1")
-    print("\n| GPUs | ms/it | speed-up | efficiency | peak GiB per GPU | 100k iterations |")
-    print("|---|---|---|---|---|---|")
+    print("\n| GPUs | solves | ms/it | speed-up | efficiency | peak GiB per GPU | 100k iterations |")
+    print("|---|---|---|---|---|---|---|")
     for r in results:
         speedup = base_ms / r["ms"]
-        print(f"| {r['gpus']} | {r['ms']:.1f} | {speedup:.2f}x | {100 * speedup / r['gpus']:.0f} % | "
+        solves = "one process" if r["gpus"] == 1 else "sharded" if r["sharded"] else "every rank"
+        print(f"| {r['gpus']} | {solves} | {r['ms']:.1f} | {speedup:.2f}x | {100 * speedup / r['gpus']:.0f} % | "
               f"{' / '.join(f'{p:.2f}' for p in r['peak_gib'])} | {r['ms'] * 1e5 / 6e4:.0f} min |")
     if args.profile_phases:
         names = sorted({k for r in results for k in r["phases_ms"]})
         print(f"\nPer-phase ms on rank 0 (median of {args.profile_phases} synchronised iterations; model.* lie inside "
               "model; `reduce` is the wait for the gradients' all-reduce after the backward)")
-        print("| phase | " + " | ".join(f"{r['gpus']} GPU" for r in results) + " |")
+        print("| phase | " + " | ".join(label(r) for r in results) + " |")
         print("|---|" + "---|" * len(results))
         for n in names:
             print(f"| {n} | " + " | ".join(f"{r['phases_ms'].get(n, 0.0):.1f}" for r in results) + " |")
-        top = [n for n in names if not n.startswith("model.")]
+        top = [n for n in names if "." not in n]  # model.* and solve_*.own lie inside other phases
         sums = [sum(r["phases_ms"].get(n, 0.0) for n in top) for r in results]
-        replicated = [sum(r["phases_ms"].get(n, 0.0) for n in REPLICATED) for r in results]
+        replicated = [sum(r["phases_ms"].get(n, 0.0) for n in REPLICATED + SHARDED_SOLVES) for r in results]
         print("| sum of phases | " + " | ".join(f"{s:.1f}" for s in sums) + " |")
-        print("| replicated forward + step (" + ", ".join(REPLICATED) + ") | "
+        print("| not split by views (" + ", ".join(REPLICATED + SHARDED_SOLVES) + ") | "
               + " | ".join(f"{s:.1f}" for s in replicated) + " |")
-        # Amdahl: the replicated part's forward and step cannot shrink (its backward, inside `backward`, neither).
-        print("\nCap from the replicated forward + step alone: " + ", ".join(
-            f"{r['gpus']} GPU: step >= {rep:.1f} ms (speed-up <= {base_ms / rep:.1f}x)" for r, rep in zip(results, replicated)
-            if rep > 0))
+        # Amdahl: these do not shrink with the views per rank. Without sharding the backward's solves lie inside
+        # `backward` (not counted here); with it, in solve_backward (counted).
+        print("\nCap from the parts not split by views alone: " + ", ".join(
+            f"{label(r)}: step >= {rep:.1f} ms (speed-up <= {base_ms / rep:.1f}x)"
+            for r, rep in zip(results, replicated) if rep > 0))
+        several = [r for r in results if r["gpus"] > 1]
+        if several:
+            print(f"\nThe phases the solves move between, per rank (median ms of the same {args.profile_phases} "
+                  "iterations; solve_*: the rank's own solves, *.own, and the wait for the others' broadcasts)")
+            print("| run | rank | " + " | ".join(SOLVE_PHASES) + " |")
+            print("|---|---|" + "---|" * len(SOLVE_PHASES))
+            for r in several:
+                for rank, phases in enumerate(r["rank_phases_ms"]):
+                    cells = " | ".join(f"{phases.get(n, 0.0):.2f}" for n in SOLVE_PHASES)
+                    print(f"| {label(r)} | {rank} | {cells} |")
     return 0
 
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections import Counter
 from contextlib import nullcontext
 from dataclasses import asdict, replace
 from datetime import timedelta
@@ -22,15 +23,19 @@ from torch.multiprocessing import start_processes
 from pig.avatar.batches import Picks, Sampler, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.config import AvatarConfig
-from pig.avatar.distributed import GradientReducer, Parallel, ShardedSampler, shard_loss, shard_picks, split_pairs
+from pig.avatar.distributed import (GradientReducer, Parallel, ShardedSampler, SolveShards, shard_loss, shard_picks,
+                                    solve_costs, solve_owners, split_pairs)
 from pig.avatar.parallel_fit import RankHooks, fit_parallel
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.losses import lpips_term
 from pig.avatar.training import LossTerms, fit, iteration_loss
 from pig.config import load_preset, load_section
 from pig.data.capture import Capture
+from pig.field.knn_graph import knn_laplacian
+from pig.field.knn_solve import FactorizedSystem
 from pig.field.latent_grid import FieldConfig
-from pig.field.precondition import PrecondConfig
+from pig.field.lattice_solve import LatticeSystem
+from pig.field.precondition import PrecondConfig, PreconditionedTensor
 from pig.render.api import RasterizerConfig
 from preset_files import write_test_preset
 
@@ -65,9 +70,44 @@ def test_shard_picks_pose_only_the_timesteps_their_views_need():
             assert all(cam in s.steps[k][1] for k, cam, _ in s.share.places)
 
 
+def test_solve_owners_balance_the_paper_solves():
+    # The `paper` preset's grid levels (16 features, 8..88 cells a side) and its anchors (KNN system: costed as the
+    # costliest level), as SolveShards costs them.
+    knn = FactorizedSystem(knn_laplacian(np.random.default_rng(0).normal(size=(50, 3)), 4), 8.0)
+    tensors = [PreconditionedTensor(torch.zeros(16, r, r, r), LatticeSystem((r, r, r), 2.0), "substitute")
+               for r in (8, 24, 40, 56, 72, 88)] + [PreconditionedTensor(torch.randn(50, 3), knn, "substitute")]
+    costs = solve_costs(tensors)
+    assert costs[5] == 16 * 88**3 * 3 * 88 and costs[6] == costs[5] and costs == sorted(costs)
+    assert solve_owners(costs, 1) == [0] * len(costs)
+    # 2 ranks: at most 54 % of the work each (the finest level, or the anchors, plus the next level); 4 and 8: no rank
+    # more than the largest solve, the least possible.
+    for world, most in ((2, 0.55 * sum(costs)), (4, costs[-1]), (8, costs[-1])):
+        owners = solve_owners(costs, world)
+        load = [sum(c for c, o in zip(costs, owners) if o == r) for r in range(world)]
+        assert set(owners) == set(range(min(world, len(costs))))  # every rank owns some, while there are enough
+        assert max(load) <= most and owners[5] != owners[6]
+
+
+def _count_solves(model: torch.nn.Module) -> Counter:
+    """Counts of the solves of `model`'s preconditioned tensors from now on, by "tensor name:slot"."""
+    counts = Counter()
+
+    def counted(solve, name):
+        def solve_counted(b, slot=None):
+            counts[f"{name}:{slot}"] += 1
+            return solve(b, slot)
+        return solve_counted
+
+    for name, module in model.named_modules():
+        if isinstance(module, PreconditionedTensor) and module.system is not None:
+            module.system.solve = counted(module.system.solve, name)
+    return counts
+
+
 def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, device: str = "cpu"):
     """One iteration (0, at progress 0.5) of the preset's fit on `device`: loss terms, gradients, the weights after
-    the step, and the rank's share of the views; through the fit's functions, the model built as the fit builds it."""
+    the step, the rank's share of the views and the solves it ran (with `fit.shard_solves` the owners'); through the
+    fit's functions, the model built as the fit builds it."""
     preset = load_preset(preset_path)
     fit_cfg = load_section(preset, "fit", FitConfig)
     precond = load_section(preset, "precond", PrecondConfig)
@@ -80,6 +120,7 @@ def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, de
     torch.manual_seed(0)
     model = build_avatar(spec).to(device)
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond)
+    solves = _count_solves(model)
     background = torch.as_tensor(capture.background, dtype=torch.float32, device=device)
     loss = LossTerms(fit_cfg, background, lpips_term(fit_cfg, device)[0], False)
     loss.at(0, 0.5)
@@ -95,16 +136,21 @@ def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, de
         terms = iteration_loss(model, batch, loss, raster, background, True, phase)
     else:
         reducer = GradientReducer(list(model.parameters()), bucket_mb=0.01)  # several buckets
+        shards = SolveShards(model, parallel.rank, parallel.world) if fit_cfg.shard_solves else None
+        if shards is not None:
+            shards.solve_forward()
         terms = shard_loss(model, batch, loss, raster, background, phase, parallel)
     terms["total"].backward()
     if parallel is not None:
         reducer.finish()
+        if shards is not None:
+            shards.solve_backward()
         terms = parallel.sum_terms(terms)
     grads = {name: p.grad.cpu() for name, p in model.named_parameters()}
     for opt in optimizers:
         opt.step()
     return ({k: v.detach().cpu() for k, v in terms.items()}, grads, {k: v.detach().cpu() for k, v in model.state_dict().items()},
-            batch.share)
+            batch.share, dict(solves))
 
 
 def _step_rank(rank: int, port: int, capture_dir: str, preset_path: str, out: str, device_type: str = "cpu") -> None:
@@ -130,21 +176,33 @@ def _step_rank(rank: int, port: int, capture_dir: str, preset_path: str, out: st
             refused = ""
         except RuntimeError as err:
             refused = str(err)
-        torch.save(result[:3] + (asdict(result[3]), decided, refused), Path(out) / f"rank{rank}.pt")
+        torch.save(result[:3] + (asdict(result[3]), decided, refused, result[4]), Path(out) / f"rank{rank}.pt")
     finally:
         dist.destroy_process_group()
 
 
-def test_two_gloo_processes_compute_the_one_process_step(small_capture, tmp_path):
-    preset = write_test_preset(tmp_path, **STEP_FIT)
+@pytest.mark.parametrize("shard_solves", [False, True])
+def test_two_gloo_processes_compute_the_one_process_step(small_capture, tmp_path, shard_solves):
+    preset = write_test_preset(tmp_path, **STEP_FIT, shard_solves=shard_solves)
     store = dist.TCPStore("127.0.0.1", 0, WORLD, is_master=True, wait_for_workers=False)
     start_processes(_step_rank, args=(store.port, str(small_capture), preset, str(tmp_path)), nprocs=WORLD,
                     start_method="spawn")
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(WORLD)]
-    terms, grads, weights, _ = _one_step(small_capture, preset, None)
+    terms, grads, weights, _, solves = _one_step(small_capture, preset, None)
 
-    places = [tuple(place[2] for place in share["places"]) for *_, share, _, _ in ranks]
-    assert [decided for *_, decided, _ in ranks] == [(False, 0.25)] * 2  # rank 0's, whatever rank 1 measured
+    # The solves: one process solves each preconditioned tensor once forward and once backward; two ranks each solve
+    # every one (their own part of the gradient), or with the solves sharded each solve runs on one rank alone.
+    assert len(solves) >= 4 and set(solves.values()) == {1}  # grid levels and anchors, forward and backward
+    ran = [rank[6] for rank in ranks]
+    runs_of = {key: sum(r.get(key, 0) for r in ran) for key in solves}
+    assert runs_of == {key: 1 if shard_solves else WORLD for key in solves}
+    assert set(ran[0]) | set(ran[1]) == set(solves)
+    if shard_solves:  # both ranks own some, each a tensor whole (forward and backward)
+        owned = [{key.rsplit(":", 1)[0] for key in r} for r in ran]
+        assert all(owned) and not owned[0] & owned[1]
+
+    places = [tuple(place[2] for place in rank[3]["places"]) for rank in ranks]
+    assert [rank[4] for rank in ranks] == [(False, 0.25)] * 2  # rank 0's decisions, whatever rank 1 measured
     assert ranks[0][5] == "" and "rank 1 drew other views than rank 0 at iteration 1" in ranks[1][5]
     assert sorted(places[0] + places[1]) == list(range(6)) and all(places)  # disjoint, together the whole batch
     assert {k: float(v) for k, v in ranks[0][0].items()} == {k: float(v) for k, v in ranks[1][0].items()}
@@ -157,10 +215,19 @@ def test_two_gloo_processes_compute_the_one_process_step(small_capture, tmp_path
     # a few units in the last place (2^-24 ~ 6e-8) of the terms summed; through the backward they added up to at
     # most 2.8e-6 of a tensor's largest gradient (measured, CPU). Tolerance 3e-5 of it: 10x that, while a view lost
     # or counted twice (a sixth of the batch) moves gradients by ~1e-1 of it.
+    # With the solves sharded the backward solves the summed gradient once, as one process does, instead of adding
+    # two ranks' solves: the same bound holds (measured: 1.6e-6 for the anchors against 1.7e-6, 2.8e-6 overall).
     for name, reference in grads.items():
         assert torch.equal(ranks[0][1][name], ranks[1][1][name]), name
         scale = reference.abs().max().item()
         torch.testing.assert_close(ranks[0][1][name], reference, rtol=0, atol=3e-5 * scale, msg=name)
+    differences = {name: ((ranks[0][1][name] - g).abs().max() / g.abs().max()).item() for name, g in grads.items()
+                   if g.abs().max() > 0}
+    preconditioned = {key.rsplit(":", 1)[0] + ".param" for key in solves}
+    print(f"shard_solves={shard_solves}: loss {terms['total']:.8f} (1 process) {ranks[0][0]['total']:.8f} (2); largest "
+          f"gradient difference / tensor's largest gradient {max(differences.values()):.2e}, preconditioned tensors: "
+          + ", ".join(f"{name} {differences[name]:.2e}" for name in sorted(preconditioned))
+          + f"; solves per rank {ran}")  # what NOTES records (pytest -rP shows it)
     assert any(grads[name].abs().max() > 0 for name in grads if name.startswith("refiner"))
     for name, value in weights.items():  # after the step: identical on every rank, and the one-process step's
         assert torch.equal(ranks[0][2][name], ranks[1][2][name]), name
@@ -208,8 +275,10 @@ def test_rank_zero_clock_decides_budget_schedule_and_checkpoints(small_capture, 
     # A time budget with a decaying learning rate (the run's progress is its time fraction), a checkpoint each
     # 2 s of rank 0's clock: were any decided by rank 1's own clock, the ranks would run different iterations or
     # step different rates (their weights differ: the fit's replica check raises) or meet at different collectives.
+    # With the solves sharded (fit.shard_solves), which adds a collective before the forward and after the reduce,
+    # while rank 0's closing evaluation must solve alone.
     preset = write_test_preset(tmp_path, iterations=1000, time_budget_s=6.0, lr_final=0.1, checkpoint_minutes=2 / 60,
-                               eval_every=10**6, log_every=1)
+                               eval_every=10**6, log_every=1, shard_solves=True)
     fit_parallel(small_capture, tmp_path / "out", preset, "pig", WORLD, "cpu", progress_s=1e6,
                  rank_hooks=functools.partial(_skewed, str(tmp_path)), timeout_s=120)
     done = [_iterations(tmp_path, r) for r in range(WORLD)]

@@ -135,6 +135,47 @@ def test_uniform_adam_matches_a_float64_reference_loop():
     assert opt.state[x]["exp_avg_sq"].ndim == 0
 
 
+@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("form", ["filter", "substitute"])
+def test_deferred_solves_follow_eq4(case, form):
+    """The solves taken out of the autograd pass (a data-parallel fit's sharded solves: the offset given to the
+    forward, the gradient preconditioned after the backward) make the same SGD steps as the dense update."""
+    system, x0 = CASES[case]()
+    target = torch.randn_like(x0)
+    a = dense_operator(system, x0)
+    lr = 0.3
+    p = PreconditionedTensor(x0, system, form)
+    p.defer_gradient = True
+    opt = build_optimizer("sgd", [{"params": [p.param], "lr": lr}])
+    ref = x0.reshape(-1).clone()
+    for _ in range(3):
+        opt.zero_grad()
+        if form == "substitute":
+            p.give(p.solve_offset())
+        (0.5 * (p() - target).square().sum()).backward()
+        raw = (p().detach() - target).reshape(-1)
+        assert torch.allclose(p.param.grad.reshape(-1), raw)  # the backward left dL/dx unsolved
+        p.param.grad.copy_(p.precondition_gradient(p.param.grad))
+        opt.step()
+        ref = ref - lr * torch.linalg.solve(a @ a, ref - target.reshape(-1))
+        with torch.no_grad():
+            assert ((p().reshape(-1) - ref).norm() / ref.norm()).item() < 1e-10
+
+
+def test_a_given_offset_serves_only_the_u_it_was_solved_for():
+    system, x0 = lattice_case()
+    p = PreconditionedTensor(x0, system, "substitute")
+    p.defer_gradient = True
+    marker = torch.full_like(x0, 7.0)
+    p.give(marker)  # returned as given, not solved
+    assert torch.equal(p().detach(), x0 + marker)
+    assert torch.equal(p().detach(), x0)  # once: the next forward solves
+    p.give(marker)
+    with torch.no_grad():
+        p.param.add_(1.0)  # u changed since (an optimiser step): the given offset is stale
+    assert torch.allclose(p().detach(), x0 + system.solve(torch.ones_like(x0)), rtol=0, atol=1e-12)
+
+
 def test_preconditioned_tensor_stores_and_returns_values():
     system, x0 = lattice_case()
     sub = PreconditionedTensor(x0, system, "substitute")

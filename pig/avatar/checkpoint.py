@@ -30,9 +30,9 @@ AVATAR_KEYS = ("version", "spec", "model")
 TRAINING_KEYS = (*AVATAR_KEYS, "optimizers", "generator", "torch_rng", "iteration", "wall_s", "log", "settings")
 # Settings that may change between runs of one fit: run length, logging and checkpoint cadence, view loading (and
 # whether its threads compute the loss's band: the same pixels), CPU threads, memory bands, replaying the same CG
-# kernels as a CUDA graph.
+# kernels as a CUDA graph, which rank of a data-parallel fit solves what (as the number of ranks: free).
 FREE_SETTINGS = {"fit": {"iterations", "eval_every", "probe_every", "checkpoint_minutes", "view_cache", "prefetch",
-                         "loader_workers", "log_every", "host_band", "cpu_threads"},
+                         "loader_workers", "log_every", "host_band", "cpu_threads", "shard_solves"},
                  "rasterizer": {"max_pairs"}, "precond": {"cg_graphs"}}
 SPEC_SECTIONS = ("avatar", "field", "precond")  # preset sections recorded in the spec
 

@@ -15,6 +15,12 @@ would, on its part of the iteration's views:
   every rank solves its part and the sum is the one-process solve; the optimisers then step identical gradients
   on every rank, which keeps the weights identical (checked at the start, at each checkpoint and at the end:
   `Parallel.check_replicas`).
+- The solves, sharded (`fit.shard_solves`, `SolveShards`): every rank solving every preconditioned tensor, forward
+  and backward, is work that N ranks repeat (the grid's DCT solves and the anchors' CG, ~10 ms of the `paper` step
+  on an H100). Instead each tensor has one owner rank (`solve_owners`): the owner solves the forward offset
+  A^-1 u and broadcasts it; the backward passes the raw dL/dx, which the GradientReducer sums as any gradient; the
+  owner solves A^-1 of the sum and broadcasts that. The one-process math again (the solve is linear), each solve
+  run once per step.
 - Decisions: what reads a clock (the time budget, the learning-rate schedule's progress, the checkpoint cadence)
   is decided by rank 0 and broadcast (`Parallel.shared`); the batch sample and the LOD come from (seed,
   iteration) on every rank and rank 0's digest of them is checked. Rank 0 alone evaluates, logs, writes
@@ -27,6 +33,7 @@ from __future__ import annotations
 
 import time
 import zlib
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -35,6 +42,8 @@ import torch
 import torch.distributed as dist
 
 from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare
+from pig.field.lattice_solve import LatticeSystem
+from pig.field.precondition import PreconditionedTensor
 from pig.render.api import render_timesteps
 
 DEFAULT_BUCKET_MB = 25.0  # gradients all-reduced in buckets of about this size, as DistributedDataParallel's default
@@ -148,6 +157,78 @@ class GradientReducer:
     def close(self) -> None:
         for hook in self._hooks:
             hook.remove()
+
+
+def _untimed(name: str) -> AbstractContextManager:
+    return nullcontext()
+
+
+def solve_costs(tensors: list[PreconditionedTensor]) -> list[float]:
+    """Each tensor's solve, in relative units, to balance the ranks' shares: a grid level's DCT solve does sum(shape)
+    multiply-adds per value and transform (pig.field.lattice_solve); any other system (the anchors' KNN solve)
+    counts as the costliest grid level (on an H100 the `paper` preset's CG took 3.4 ms, forward + backward, against
+    ~3.8 ms for the finest level's part of the DCT solves' 6.3: benchmarks/NOTES.md, runs 17-18)."""
+    lattice = {id(t): float(t.param.numel() * sum(t.system.shape)) for t in tensors
+               if isinstance(t.system, LatticeSystem)}
+    other = max(lattice.values(), default=1.0)
+    return [lattice.get(id(t), other) for t in tensors]
+
+
+def solve_owners(costs: list[float], world: int) -> list[int]:
+    """The rank that solves each of the tensors of `costs`: the costliest first, each to the rank with the least
+    cost so far (the lowest rank on a tie). The same costs give the same owners on every rank."""
+    load = [0.0] * world
+    owners = [0] * len(costs)
+    for index in sorted(range(len(costs)), key=lambda i: (-costs[i], i)):
+        owners[index] = min(range(world), key=lambda r: (load[r], r))
+        load[owners[index]] += costs[index]
+    return owners
+
+
+class SolveShards:
+    """The preconditioned tensors' solves of a data-parallel step (Eqs. 4-5), each run by one rank, its owner.
+
+    `solve_forward` (before the forward): each owner solves its tensors' offsets A^-1 u and broadcasts them; the
+    tensors' forward returns them (PreconditionedTensor.give). Their backward leaves dL/dx unsolved
+    (`defer_gradient`), summed over the ranks by the GradientReducer. `solve_backward` (after GradientReducer.finish,
+    before the optimisers step): each owner replaces its tensors' summed gradients by the preconditioned ones and
+    broadcasts them. Every rank calls both, in step, with the same model: the broadcasts follow the tensors' order.
+    The owners solve before any broadcast is launched, so that the ranks solve at the same time."""
+
+    def __init__(self, model: torch.nn.Module, rank: int, world: int):
+        self.rank = rank
+        tensors = [m for m in model.modules() if isinstance(m, PreconditionedTensor) and m.form != "none"]
+        self.shares = list(zip(tensors, solve_owners(solve_costs(tensors), world)))  # (tensor, its owner)
+        for tensor in tensors:
+            tensor.defer_gradient = True
+
+    def solve_forward(self, phase: Callable[[str], AbstractContextManager] | None = None) -> None:
+        """Every substitution-form tensor's offset for its current u, solved by its owner, given to its next forward.
+        `phase` (a profiler's hook) times this rank's own solves as "solve_forward.own"."""
+        shared = [(t, owner) for t, owner in self.shares if t.form == "substitute"]
+        with (phase or _untimed)("solve_forward.own"):
+            offsets = [t.solve_offset().contiguous() if owner == self.rank else torch.empty_like(t.param)
+                       for t, owner in shared]
+        works = [dist.broadcast(offset, owner, async_op=True) for offset, (_, owner) in zip(offsets, shared)]
+        for work, offset, (tensor, _) in zip(works, offsets, shared):
+            work.wait()
+            tensor.give(offset)
+
+    def solve_backward(self, phase: Callable[[str], AbstractContextManager] | None = None) -> None:
+        """Each tensor's gradient, the sum over the ranks of dL/dx, replaced by the preconditioned gradient. `phase`
+        times this rank's own solves as "solve_backward.own"."""
+        with (phase or _untimed)("solve_backward.own"):
+            for tensor, owner in self.shares:
+                if owner == self.rank:
+                    tensor.param.grad.copy_(tensor.precondition_gradient(tensor.param.grad))
+        works = [dist.broadcast(t.param.grad, owner, async_op=True) for t, owner in self.shares]
+        for work in works:
+            work.wait()
+
+    def close(self) -> None:
+        """The tensors solve in their autograd pass again."""
+        for tensor, _ in self.shares:
+            tensor.defer_gradient = False
 
 
 class SilentProgress:

@@ -91,6 +91,10 @@ class FitConfig:
     lpips_bf16_head: bool = False
     lpips_compile: bool = False
     lpips_crop_sliced: bool = False
+    # A data-parallel fit (`pig fit --gpus N`) solves each preconditioned tensor's systems (Eqs. 4-5) on one rank and
+    # broadcasts the result, instead of on every rank (pig.avatar.distributed.SolveShards); the same math. No effect
+    # in one process. Off until the GPU scaling table measures it (benchmarks/fit_multi_gpu.py --shard-solves).
+    shard_solves: bool = False
     # torch.use_deterministic_algorithms on a GPU fit (a CPU fit always runs so: bit-identical at a fixed thread
     # count). It covers torch's own kernels only, with a warning for those it has no deterministic form of
     # (grid_sample's backward); gsplat's backward sums in a nondeterministic order regardless (docs/gpu.md).

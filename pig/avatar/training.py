@@ -35,7 +35,7 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
-from pig.avatar.distributed import Parallel, ShardedSampler, SilentProgress, shard_loss
+from pig.avatar.distributed import Parallel, ShardedSampler, SilentProgress, SolveShards, shard_loss
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_writer
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
@@ -285,11 +285,14 @@ def fit(capture_dir: Path, output_dir: Path, preset_name: str = DEFAULT_PRESET, 
 
     `on_iteration(i)` is called after iteration i (1-based) is complete and checkpointed if due.
     `phase(name)` wraps each part of an iteration ("sample": waiting for the iteration's views, "model",
-    "render", "loss", "backward", "step", and "reduce", the wait for the gradients' all-reduce, in a data-parallel
-    fit; render and loss once per view batch, or once with `batched_render`): a hook for profilers
-    (benchmarks/fit_gpu.py). The wait for the views is also logged (train_log.csv's data_wait_ms) and its
-    mean printed at the end. `clock` (seconds) times the fit: its training seconds (train_s, what
-    `fit.time_budget_s` counts; pig.avatar.training_clock), the checkpoint cadence and the plot redraws.
+    "render", "loss", "backward", "step", and in a data-parallel fit "reduce", the wait for the gradients'
+    all-reduce, and with `fit.shard_solves` "solve_forward" and "solve_backward", the solves this rank owns
+    ("solve_forward.own", "solve_backward.own", inside them) and the wait for the others' broadcasts,
+    pig.avatar.distributed.SolveShards; render and loss once per view batch, or once
+    with `batched_render`): a hook for profilers (benchmarks/fit_gpu.py). The wait for the views is also logged
+    (train_log.csv's data_wait_ms) and its mean printed at the end. `clock` (seconds) times the fit: its training
+    seconds (train_s, what `fit.time_budget_s` counts; pig.avatar.training_clock), the checkpoint cadence and the
+    plot redraws.
     """
     callers_threads = torch.get_num_threads()
     callers_deterministic = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
@@ -469,6 +472,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             report.print_line(0, 0.0)
 
         reducer = None if parallel is None else parallel.reduce_gradients(model)
+        shards = (SolveShards(model, parallel.rank, parallel.world) if parallel is not None and fit_cfg.shard_solves
+                  else None)  # each preconditioned solve on one rank
         clock = TrainingClock(wall_before, train_before, now)
         last_save = now()
         waits = []
@@ -521,6 +526,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 if parallel is None:
                     terms = iteration_loss(model, batch, loss, raster, background, fit_cfg.batched_render, phase)
                 else:
+                    if shards is not None:
+                        with phase("solve_forward"):
+                            shards.solve_forward(phase)
                     terms = shard_loss(model, batch, loss, raster, background, phase, parallel)
                 with phase("backward"):
                     for opt in optimizers:
@@ -529,6 +537,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 if reducer is not None:
                     with phase("reduce"):
                         reducer.finish()
+                if shards is not None:
+                    with phase("solve_backward"):
+                        shards.solve_backward(phase)
                 with phase("step"):
                     for opt in optimizers:
                         opt.step()
@@ -583,6 +594,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         start_grid_smoothing()
     if parallel is not None:
         reducer.close()
+        if shards is not None:
+            shards.close()
         parallel.check_replicas(model, f"at the end (iteration {iteration})")
         if not lead:
             return avatar_path

@@ -22,7 +22,9 @@ Adam at the paper's learning rates, is the one the toy fits of benchmarks/precon
 
 Use: `p = PreconditionedTensor(x0, system, form)`; `p()` returns x (differentiable); optimise
 `p.param`; `p.set_value(x)` overwrites x; `p.bake()` freezes the current x as a plain tensor. Call
-`p()` once per optimisation step and reuse the result: every call runs the solves. A system is any
+`p()` once per optimisation step and reuse the result: every call runs the solves. A data-parallel fit may
+take the solves out of the autograd pass (`defer_gradient`, `give`, `solve_offset`, `precondition_gradient`) to
+run each on one rank (pig.avatar.distributed.SolveShards); the math is the same. A system is any
 object with `solve(b, slot) -> A^-1 b` and `apply(x) -> A x` (LatticeSystem, FactorizedSystem,
 CGSystem); `slot` names the warm start an iterative solver reuses.
 """
@@ -114,6 +116,19 @@ class FilteredGradient(torch.autograd.Function):
         return ctx.system.solve(ctx.system.solve(grad, "filter1"), "filter2"), None
 
 
+class PassGradient(torch.autograd.Function):
+    """x - x0 = `offset`, solved elsewhere; the backward passes dL/dx to u unsolved (the deferred gradient)."""
+
+    @staticmethod
+    def forward(ctx, u: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+        return offset
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: torch.Tensor):
+        return grad, None
+
+
 class PreconditionedTensor(nn.Module):
     """Holds the optimised tensor `param` (x, or u = A (x - origin) for "substitute"); `forward()` returns x."""
 
@@ -128,14 +143,44 @@ class PreconditionedTensor(nn.Module):
         value = value.detach()
         self.param = nn.Parameter(torch.zeros_like(value) if form == "substitute" else value.clone())
         self.register_buffer("origin", _origin_of(value) if form == "substitute" else None)
+        # With `defer_gradient` the backward leaves dL/dx unsolved in `param.grad`, for whoever set it to apply
+        # `precondition_gradient` (after summing it over ranks); `give` hands the next forward its solved offset.
+        self.defer_gradient = False
+        self._given: tuple[torch.Tensor, int] | None = None
 
     def forward(self) -> torch.Tensor:
         if self.form == "substitute":
-            offset = SubstitutionSolve.apply(self.param, self.system)
+            if self.defer_gradient:
+                offset = PassGradient.apply(self.param, self._take_given())
+            else:
+                offset = SubstitutionSolve.apply(self.param, self.system)
             return offset if self.origin is None else self.origin + offset
         if self.form == "filter":
-            return FilteredGradient.apply(self.param, self.system)
+            return self.param if self.defer_gradient else FilteredGradient.apply(self.param, self.system)
         return self.param
+
+    def solve_offset(self) -> torch.Tensor:
+        """x - x0 = A^-1 u of the substitution form, detached: the forward's solve."""
+        return self.system.solve(self.param.detach(), "forward")
+
+    def precondition_gradient(self, grad: torch.Tensor) -> torch.Tensor:
+        """The backward's gradient of `param` for dL/dx = `grad`: A^-1 grad ("substitute"), A^-2 grad ("filter")."""
+        if self.form == "substitute":
+            return self.system.solve(grad, "backward")
+        if self.form == "filter":
+            return self.system.solve(self.system.solve(grad, "filter1"), "filter2")
+        return grad
+
+    def give(self, offset: torch.Tensor) -> None:
+        """`offset` = A^-1 u of the current u, solved elsewhere: the next forward returns it instead of solving."""
+        self._given = (offset, self.param._version)
+
+    def _take_given(self) -> torch.Tensor:
+        """The offset given for u as it is now (once), else solved here: a given one of an older u is never used."""
+        given, self._given = self._given, None
+        if given is not None and given[1] == self.param._version:
+            return given[0]
+        return self.solve_offset()
 
     @torch.no_grad()
     def set_value(self, value: torch.Tensor) -> None:

@@ -4,7 +4,7 @@ Run on a machine with 2 or more GPUs (skipped otherwise). NVLink multicast is tu
 (docs/gpu.md). The step: the 2 ranks' summed gradients against one GPU's, bound 1e-3 of each tensor's largest
 gradient (gsplat's backward adds with atomics in any order, so even two one-GPU steps differ by float32 rounding
 of many terms; a view lost or counted twice moves them by ~1e-1); both ranks' gradients and weights after the step
-bit-identical.
+bit-identical; with the solves sharded (fit.shard_solves) as without.
 """
 import sys
 from pathlib import Path
@@ -32,13 +32,17 @@ def no_multicast(monkeypatch):
         monkeypatch.setenv(name, value)
 
 
-def test_two_gpus_compute_the_one_gpu_step(small_capture, tmp_path):
-    preset = write_test_preset(tmp_path, **STEP_FIT)
+@pytest.mark.parametrize("shard_solves", [False, True])
+def test_two_gpus_compute_the_one_gpu_step(small_capture, tmp_path, shard_solves):
+    preset = write_test_preset(tmp_path, **STEP_FIT, shard_solves=shard_solves)
     store = dist.TCPStore("127.0.0.1", 0, WORLD, is_master=True, wait_for_workers=False)
     start_processes(_step_rank, args=(store.port, str(small_capture), preset, str(tmp_path), "cuda"), nprocs=WORLD,
                     start_method="spawn")
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(WORLD)]
-    terms, grads, weights, _ = _one_step(small_capture, preset, None, "cuda:0")
+    terms, grads, weights, _, solves = _one_step(small_capture, preset, None, "cuda:0")
+    ran = [rank[6] for rank in ranks]  # each solve on one rank when sharded, else on both
+    runs_of = {key: sum(r.get(key, 0) for r in ran) for key in solves}
+    assert runs_of == {key: 1 if shard_solves else WORLD for key in solves}
     for key in terms:
         torch.testing.assert_close(ranks[0][0][key], terms[key], rtol=1e-4, atol=1e-6)
     for name, reference in grads.items():
