@@ -284,7 +284,8 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
             timed(f"LPIPS-{cfg.lpips_net} render vs taps (new: per LOD)", lambda: lpips.distance(x, reference))
             timed("FID Inception, one image set", lambda: inception(x))
             if lowered:
-                low_reference = timed(f"LPIPS-{cfg.lpips_net} truth taps ({arithmetic})", lambda: lpips_low.reference(y))
+                low_reference = timed(f"LPIPS-{cfg.lpips_net} truth taps ({arithmetic})",
+                                      lambda: lpips_low.reference(y))
                 low = timed(f"LPIPS-{cfg.lpips_net} render vs taps ({arithmetic})",
                             lambda: lpips_low.distance(x, low_reference))
                 timed(fid_row, lambda: inception_low(x))
@@ -320,7 +321,8 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     paths = [("old", old_host, old_device), ("new", new_host, new_device)]
     if lowered:  # the same pass with the networks' rows in the preset's arithmetic
         lpips_f32 = ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
-        lpips_low = ms[f"LPIPS-{net} render vs taps ({arithmetic})"] + ms[f"LPIPS-{net} truth taps ({arithmetic})"] / lods
+        lpips_low = (ms[f"LPIPS-{net} render vs taps ({arithmetic})"]
+                     + ms[f"LPIPS-{net} truth taps ({arithmetic})"] / lods)
         fid_change = (1 + 1 / lods) * (ms[fid_row] - ms["FID Inception, one image set"])
         paths.append((f"new in {arithmetic}", new_host, new_device - lpips_f32 + lpips_low + fid_change))
     for name, host, on_device in paths:
@@ -375,7 +377,8 @@ def main(argv: list[str] | None = None) -> int:
         [str(args.code.resolve()) if args.code else str(Path(__file__).resolve().parents[1]),
          *filter(None, [os.environ.get("PYTHONPATH")])])}
     evaluate = {key: value for key, value in (("render_codec", args.codec), ("encode_workers", args.encode_workers),
-                                              ("batch_size", args.batch_size), ("lpips_precision", args.lpips_precision),
+                                              ("batch_size", args.batch_size),
+                                              ("lpips_precision", args.lpips_precision),
                                               ("fid_precision", args.fid_precision),
                                               ("channels_last", args.channels_last or None)) if value is not None}
     preset = write_preset(args.workdir, args.preset, args.iterations, args.device, evaluate)

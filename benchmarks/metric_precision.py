@@ -1,12 +1,13 @@
-"""Parity of the metric networks in float16 / bfloat16 (evaluate.network_precision) with float32, on the CPU.
+"""Parity of the metric networks in float16 / bfloat16 (evaluate.lpips_precision, fid_precision) with float32 (CPU).
 
 Ground truth: frames of a synthetic capture (pig.data.synthetic, `--views` views at the largest `--sizes` size,
 masked to black as the protocol masks them; the smaller sizes are area-resized copies). Renders: each truth
 perturbed as a fitted avatar's render differs from it (`perturbed`: blur, a two-pixel shift, a colour gain and
 noise; PSNR printed). Per size and setting: the largest |LPIPS - LPIPS_float32| over the images, against issue 39's
-1e-3, with random-weight LPIPS-VGG (`LPIPS(weights="random")`, the fit's stand-in path). FID: truths against
-renders over `--fid-views` smaller views, through benchmarks/eval_scale.py's stand-in Inception (random
-convolutions of Inception-v3's cost), its relative change against 0.5 %. Random weights are a stand-in: trained
+1e-3, and the largest relative difference, with random-weight LPIPS-VGG (`LPIPS(weights="random")`, the fit's
+stand-in path). FID: truths against renders (at each of `--fid-strengths`) over `--fid-views` smaller views, through
+benchmarks/eval_scale.py's stand-in Inception (random convolutions of Inception-v3's cost), its relative change
+against 0.5 %. Random weights are a stand-in: trained
 networks' activations span other ranges, so the GPU parity test (tests/gpu/test_evaluate_precision_gpu.py) decides.
 
 float16 convolutions on a CPU without float16 arithmetic are slow: `--float16-max-pixels` runs them under autocast
@@ -38,7 +39,8 @@ from pig.metrics.lpips import LPIPS  # noqa: E402
 LPIPS_BOUND, FID_BOUND = 1e-3, 5e-3  # issue 39: absolute per image; relative
 
 
-def synthetic_views(workdir: Path, views: int, width: int, height: int, workers: int = 2) -> tuple[np.ndarray, np.ndarray]:
+def synthetic_views(workdir: Path, views: int, width: int, height: int,
+                    workers: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """(truths (N, H, W, 3) uint8 masked to black, masks (N, H, W) bool) of `views` views of a synthetic capture
     (two frames, views / 2 cameras, rounded up), generated once per size under `workdir`."""
     from pig.data.synthetic import SyntheticConfig, generate_capture
@@ -186,7 +188,8 @@ def main(argv: list[str] | None = None) -> int:
             worst = float(np.abs(values - reference).max())
             relative = float((np.abs(values - reference) / reference).max())
             rows.append({"setting": setting, "size": f"{width}x{height}", "images": len(t), "psnr": psnr,
-                         "lpips_float32": float(reference.mean()), "max_abs_diff": worst, "max_relative_diff": relative, "s_per_pass": seconds})
+                         "lpips_float32": float(reference.mean()), "max_abs_diff": worst,
+                         "max_relative_diff": relative, "s_per_pass": seconds})
             print(f"{setting:<26} {width:>5}x{height:<4} {len(t):>6} {psnr:>8.2f} {reference.mean():>10.4f} "
                   f"{worst:>13.2e} {relative:>9.2e} {seconds:>7.2f}", flush=True)
 

@@ -165,8 +165,8 @@ class InceptionFeatures(torch.nn.Module):
     in float32; `channels_last`: its weights and input in channels-last memory format.
     """
 
-    def __init__(self, weights: str | Path | None = None, resize: str = "antialiased_bilinear", precision: str = "float32",
-                 channels_last: bool = False):
+    def __init__(self, weights: str | Path | None = None, resize: str = "antialiased_bilinear",
+                 precision: str = "float32", channels_last: bool = False):
         super().__init__()
         self.resize = resize
         self.precision, self.channels_last = check_precision(precision, "FID Inception"), channels_last
