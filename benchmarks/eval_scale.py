@@ -247,8 +247,9 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     lowered = (cfg.lpips_precision, cfg.fid_precision, cfg.channels_last) != ("float32", "float32", False)
     layout = ", channels-last" if cfg.channels_last else ""
     arithmetic, fid_row = f"{cfg.lpips_precision}{layout}", f"FID Inception ({cfg.fid_precision}{layout})"
-    lpips_low = LPIPS(cfg.lpips_net, precision=cfg.lpips_precision, channels_last=cfg.channels_last).to(dev)
-    inception_low = InceptionFeatures(precision=cfg.fid_precision, channels_last=cfg.channels_last).to(dev)
+    if lowered:
+        lpips_low = LPIPS(cfg.lpips_net, precision=cfg.lpips_precision, channels_last=cfg.channels_last).to(dev)
+        inception_low = InceptionFeatures(precision=cfg.fid_precision, channels_last=cfg.channels_last).to(dev)
     lpips_gap = 0.0
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     times: dict[str, list[float]] = {}
