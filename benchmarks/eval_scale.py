@@ -17,7 +17,9 @@ and FID use stand-in random weights written to the work folder's torch hub cache
 `--breakdown-batches N` then times each part of an evaluate second alone, on N batches of novel-pose views with
 the device synchronised around each (`breakdown`): decoding ground truth and renders (one thread), the
 host-to-device copies (float32 from pageable memory as the old stage did, uint8 from page-locked as now), PSNR,
-SSIM, LPIPS-VGG (pair, and the render side against cached ground-truth taps) and the FID network, in ms per view.
+SSIM, LPIPS-VGG (pair, and the render side against cached ground-truth taps) and the FID network, in ms per view;
+with `--lpips-precision` / `--fid-precision` / `--channels-last` (passed to the evaluate stage's preset too) also
+the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views.
 
     python benchmarks/eval_scale.py --workdir /tmp/evscale                     # CUDA: paper preset, whole protocol
     python benchmarks/eval_scale.py --workdir /tmp/evscale --device cpu --preset cpu-demo --fraction 0.004 \\
@@ -241,6 +243,14 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     level = max(int(p.name[3:]) for p in split_dir.glob("lod*"))
     reader = RenderReader(split_dir / f"lod{level}")
     lpips, inception = LPIPS(cfg.lpips_net).to(dev), InceptionFeatures().to(dev)
+    # The preset's arithmetic, when it is not float32's: its rows beside the float32 ones, on the same views.
+    lowered = (cfg.lpips_precision, cfg.fid_precision, cfg.channels_last) != ("float32", "float32", False)
+    layout = ", channels-last" if cfg.channels_last else ""
+    arithmetic, fid_row = f"{cfg.lpips_precision}{layout}", f"FID Inception ({cfg.fid_precision}{layout})"
+    if lowered:
+        lpips_low = LPIPS(cfg.lpips_net, precision=cfg.lpips_precision, channels_last=cfg.channels_last).to(dev)
+        inception_low = InceptionFeatures(precision=cfg.fid_precision, channels_last=cfg.channels_last).to(dev)
+    lpips_gap = 0.0
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     times: dict[str, list[float]] = {}
 
@@ -274,6 +284,14 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
             reference = timed(f"LPIPS-{cfg.lpips_net} truth taps (new: once)", lambda: lpips.reference(y))
             timed(f"LPIPS-{cfg.lpips_net} render vs taps (new: per LOD)", lambda: lpips.distance(x, reference))
             timed("FID Inception, one image set", lambda: inception(x))
+            if lowered:
+                low_reference = timed(f"LPIPS-{cfg.lpips_net} truth taps ({arithmetic})",
+                                      lambda: lpips_low.reference(y))
+                low = timed(f"LPIPS-{cfg.lpips_net} render vs taps ({arithmetic})",
+                            lambda: lpips_low.distance(x, low_reference))
+                timed(fid_row, lambda: inception_low(x))
+                lpips_gap = max(lpips_gap, (low - lpips.distance(x, reference)).abs().max().item())
+                del low_reference
         del reference
         if b == 0:
             times.clear()
@@ -282,13 +300,16 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     rows = [{"part": name, "ms_per_view": value} for name, value in ms.items()]
     print(f"\nwhere an evaluate second goes: {views} views of {split_dir.name} lod{level}, batches of "
           f"{cfg.batch_size}, device {device}, each part alone")
-    print(f"{'part':<48} {'ms/view':>9}")
+    print(f"{'part':<52} {'ms/view':>9}")
     for row in rows:
-        print(f"{row['part']:<48} {row['ms_per_view']:>9.2f}")
+        print(f"{row['part']:<52} {row['ms_per_view']:>9.2f}")
     # Per view score (one view at one LOD) at this split's LOD count L: the old jobs redid the ground truth's
     # share at every LOD; the pass does it once per view. Host work runs on evaluate.encode_workers threads.
     lods = len(list(split_dir.glob("lod*")))
     net = cfg.lpips_net
+    if lowered:
+        print(f"largest |LPIPS {arithmetic} - LPIPS float32| over these views: {lpips_gap:.2e} (issue 39: 1e-3)")
+        rows.append({"part": f"max |LPIPS {arithmetic} - float32|", "lpips_difference": lpips_gap})
     truth_host = ms["decode ground truth (1 thread)"] + ms["decode masks (1 thread)"]
     old_host = truth_host + ms["decode renders (1 thread)"] + ms["uint8 to float32 + mask on the host (old)"]
     new_host = truth_host / lods + ms["decode renders (1 thread)"]
@@ -298,7 +319,14 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     new_device = (ms["copy uint8 render + truth + mask, pinned (new)"] + metrics
                   + ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
                   + (1 + 1 / lods) * ms["FID Inception, one image set"])
-    for name, host, on_device in (("old", old_host, old_device), ("new", new_host, new_device)):
+    paths = [("old", old_host, old_device), ("new", new_host, new_device)]
+    if lowered:  # the same pass with the networks' rows in the preset's arithmetic
+        lpips_f32 = ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
+        lpips_low = (ms[f"LPIPS-{net} render vs taps ({arithmetic})"]
+                     + ms[f"LPIPS-{net} truth taps ({arithmetic})"] / lods)
+        fid_change = (1 + 1 / lods) * (ms[fid_row] - ms["FID Inception, one image set"])
+        paths.append((f"new in {arithmetic}", new_host, new_device - lpips_f32 + lpips_low + fid_change))
+    for name, host, on_device in paths:
         print(f"{name}, per view score at {lods} LODs: host {host:.2f} ms on one thread "
               f"({host / cfg.encode_workers:.2f} ms on {cfg.encode_workers}), device {on_device:.2f} ms")
         rows.append({"part": f"{name} per view score: host, one thread", "ms_per_view": host})
@@ -324,6 +352,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--codec", choices=["png", "webp"], default=None, help="evaluate.render_codec (preset's)")
     parser.add_argument("--encode-workers", type=int, default=None, help="evaluate.encode_workers (preset's)")
     parser.add_argument("--batch-size", type=int, default=None, help="evaluate.batch_size (preset's)")
+    parser.add_argument("--lpips-precision", choices=["float32", "float16", "bfloat16"], default=None,
+                        help="evaluate.lpips_precision (preset's); the breakdown adds its rows beside float32's")
+    parser.add_argument("--fid-precision", choices=["float32", "float16", "bfloat16"], default=None,
+                        help="evaluate.fid_precision (preset's)")
+    parser.add_argument("--channels-last", action="store_true", help="evaluate.channels_last: true")
     parser.add_argument("--codec-sample", type=int, default=0,
                         help="also time every codec on this many rendered novel-pose views (one thread)")
     parser.add_argument("--upscale", type=int, default=1,
@@ -345,7 +378,10 @@ def main(argv: list[str] | None = None) -> int:
         [str(args.code.resolve()) if args.code else str(Path(__file__).resolve().parents[1]),
          *filter(None, [os.environ.get("PYTHONPATH")])])}
     evaluate = {key: value for key, value in (("render_codec", args.codec), ("encode_workers", args.encode_workers),
-                                              ("batch_size", args.batch_size)) if value is not None}
+                                              ("batch_size", args.batch_size),
+                                              ("lpips_precision", args.lpips_precision),
+                                              ("fid_precision", args.fid_precision),
+                                              ("channels_last", args.channels_last or None)) if value is not None}
     preset = write_preset(args.workdir, args.preset, args.iterations, args.device, evaluate)
     variant = args.workdir / f"{capture.name}_{args.preset}_{args.iterations}" / "pig"
     if not (variant / "avatar.pt").is_file():

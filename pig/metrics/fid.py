@@ -12,6 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from pig.metrics.precision import check_precision, network_arithmetic
 from pig.metrics.weights import INCEPTION_FILE, WeightsMissing, locate
 
 # Below this many images per set the FID is still computed, but flagged: with 2048 feature dimensions its
@@ -159,23 +160,35 @@ class InceptionFeatures(torch.nn.Module):
     """TorchScript Inception feature extractor: images (B, 3, H, W) in [0, 1] -> (B, D) pool features.
 
     Images are resized to 299 x 299 (`resize`: see resize_for_inception) and scaled to [0, 255] floats, the input
-    clean-fid gives the same network (`model(x, return_features=True)`). Raises `WeightsMissing`.
+    clean-fid gives the same network (`model(x, return_features=True)`). Raises `WeightsMissing`. `precision`
+    (float32, float16, bfloat16): the network's arithmetic (autocast; the resize stays float32), its features returned
+    in float32; `channels_last`: its weights and input in channels-last memory format.
     """
 
-    def __init__(self, weights: str | Path | None = None, resize: str = "antialiased_bilinear"):
+    def __init__(self, weights: str | Path | None = None, resize: str = "antialiased_bilinear",
+                 precision: str = "float32", channels_last: bool = False):
         super().__init__()
         self.resize = resize
+        self.precision, self.channels_last = check_precision(precision, "FID Inception"), channels_last
         # Not /tmp, where clean-fid drops it: anyone can write there, and the file is code (TorchScript).
         path = locate(INCEPTION_FILE, weights, [], "FID Inception network")
         try:
             self.model = torch.jit.load(str(path), map_location="cpu").eval()
         except Exception as err:  # TorchScript raises RuntimeError or ValueError for foreign files
             raise WeightsMissing(f"{path}: not a loadable TorchScript Inception network ({err})") from None
+        if channels_last:
+            self.model.to(memory_format=torch.channels_last)
 
     @torch.no_grad()
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         if images.dim() != 4 or images.shape[1] != 3:
             raise ValueError(f"InceptionFeatures expects (B, 3, H, W) images, found {tuple(images.shape)}")
         images = resize_for_inception(images, self.resize)
-        features = self.model(images.clamp(0, 1) * 255, return_features=True)
+        scaled = images.clamp(0, 1) * 255
+        if self.channels_last:
+            scaled = scaled.contiguous(memory_format=torch.channels_last)
+        with network_arithmetic(scaled.device.type, self.precision):
+            features = self.model(scaled, return_features=True)
+        if self.precision != "float32":
+            features = features.to(torch.promote_types(features.dtype, torch.float32))
         return features.reshape(images.shape[0], -1)

@@ -7,7 +7,9 @@ is rebuilt in plain torch with torchvision's layer layout, so torchvision's chec
 instead (no file read): its distances mean nothing, but it costs what the pretrained one costs, for timing
 the loss term where the weights are absent.
 
-`LPIPS.forward` is the float32 reference: the evaluation scores with it, and its parity tests hold to it.
+`LPIPS.forward` is the float32 reference: the evaluation scores with it, and its parity tests hold to it. The
+evaluation may run the backbone in float16 or bfloat16 and channels-last instead (`precision`, `channels_last`;
+pig.metrics.precision), the taps widened to float32 before the distance.
 `TrainingLPIPS` wraps it for the loss with the speed levers of the fit (bf16 backbone and head, compiled).
 """
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Literal
 import torch
 import torch.nn as nn
 
+from pig.metrics.precision import check_precision, network_arithmetic
 from pig.metrics.weights import (
     LPIPS_LINEAR_FILES,
     TORCHVISION_FILES,
@@ -71,15 +74,19 @@ class LPIPS(nn.Module):
     Differentiable w.r.t. the images. Raises `WeightsMissing` when either weight file is absent;
     `backbone_weights` / `linear_weights` name the files directly, otherwise they are looked up
     in the torch hub cache (and the lpips package folder for the linear layers). `weights="random"` looks up
-    nothing and initialises both from `seed` (see `_initialise`).
+    nothing and initialises both from `seed` (see `_initialise`). `precision` (float32, float16, bfloat16): the
+    arithmetic of the backbone (autocast), its taps widened to float32 for the distance; `channels_last`: the
+    backbone's weights and inputs in channels-last memory format.
     """
 
     def __init__(self, net: str = "alex", backbone_weights: str | Path | None = None, linear_weights: str | Path | None = None,
-                 weights: Literal["pretrained", "random"] = "pretrained", seed: int = 0):
+                 weights: Literal["pretrained", "random"] = "pretrained", seed: int = 0, precision: str = "float32",
+                 channels_last: bool = False):
         super().__init__()
         if weights not in ("pretrained", "random"):
             raise ValueError(f"LPIPS weights must be 'pretrained' or 'random', found {weights!r}")
         self.net = net
+        self.precision, self.channels_last = check_precision(precision, "LPIPS"), channels_last
         self.features = backbone_features(net)
         self.taps = TAPS[net]
         self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in CHANNELS[net])
@@ -93,6 +100,8 @@ class LPIPS(nn.Module):
             linear_path = locate(LPIPS_LINEAR_FILES[net], linear_weights, [lpips_package_weights()], f"LPIPS {net} linear layers")
             self._load_backbone(backbone_path)
             self._load_linear(linear_path)
+        if channels_last:
+            self.features.to(memory_format=torch.channels_last)
         self.requires_grad_(False)
         self.eval()
 
@@ -127,13 +136,19 @@ class LPIPS(nn.Module):
 
     def _activations(self, images: torch.Tensor) -> list[torch.Tensor]:
         h = ((2 * images - 1) - self.shift) / self.scale
+        if self.channels_last:
+            h = h.contiguous(memory_format=torch.channels_last)
+        # Below float32 the unit normalisation would overflow float16 (a sum of squares over up to 512 channels) and
+        # lose bfloat16's few digits: each tap is widened to float32 as it is taken.
+        widen = self.precision != "float32"
         taps = []
-        for index, layer in enumerate(self.features):
-            h = layer(h)
-            if index in self.taps:
-                taps.append(h)
-                if len(taps) == len(self.taps):
-                    break
+        with network_arithmetic(h.device.type, self.precision):
+            for index, layer in enumerate(self.features):
+                h = layer(h)
+                if index in self.taps:
+                    taps.append(h.to(torch.promote_types(h.dtype, torch.float32)) if widen else h)
+                    if len(taps) == len(self.taps):
+                        break
         return taps
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

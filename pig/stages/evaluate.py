@@ -58,6 +58,13 @@ class EvaluateConfig:
     lpips_linear_weights: str | None = None  # lpips package's alex.pth / vgg.pth; None: hub cache or package
     inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: torch hub cache
     fid_min_images: int = DEFAULT_MIN_IMAGES  # FID over fewer images per set is flagged as biased (still computed)
+    # Arithmetic of the LPIPS backbone and of the FID Inception (pig.metrics.precision): float32 (the reference), or
+    # float16 / bfloat16 under autocast, the features widened to float32 before distances and statistics; PSNR and
+    # SSIM stay float32. Lower precision only where its parity with float32 is shown (benchmarks/NOTES.md, "Lower-
+    # precision metric networks"): LPIPS-VGG is most of the device's time, the Inception ~3 % of it.
+    lpips_precision: Literal["float32", "float16", "bfloat16"] = "float32"
+    fid_precision: Literal["float32", "float16", "bfloat16"] = "float32"
+    channels_last: bool = False  # both networks' weights and inputs in channels-last memory format
     batch_size: Annotated[int, Bounds(ge=1)] = 8
     device: str = "auto"  # "auto": CUDA when available
     timing_frames: Annotated[int, Bounds(ge=1)] = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
@@ -114,6 +121,13 @@ def weights_note(cfg: EvaluateConfig, lpips_loaded: bool, inception_loaded: bool
     if not files:
         return ""
     return "scored with weights " + ", ".join(f"{path.name} (sha256 {file_sha256(path)[:12]})" for path in files)
+
+
+def precision_note(cfg: EvaluateConfig) -> str:
+    """The tables' note on LPIPS or FID scored by a network below float32 ('' when both ran in float32)."""
+    lowered = [f"{metric} network in {precision}" for metric, precision in
+               (("LPIPS", cfg.lpips_precision), ("FID", cfg.fid_precision)) if precision != "float32"]
+    return "; ".join(lowered) + " (features widened to float32)" if lowered else ""
 
 
 REGION_KEYS = [f"{metric}_{region}" for metric in ("psnr", "ssim") for region in ("garment", "body", "background")]
@@ -323,10 +337,12 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
               f"frames); scoring the other {views}")
     device = resolve_device(cfg.device)
     lpips_net, lpips_note = _load_metric(
-        lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights).to(device), "LPIPS")
+        lambda: LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights,
+                      precision=cfg.lpips_precision, channels_last=cfg.channels_last).to(device), "LPIPS")
     rules = protocol(cfg.protocol)
-    inception, fid_note = _load_metric(lambda: InceptionFeatures(cfg.inception_weights, rules.fid_resize).to(device),
-                                       "FID")
+    inception, fid_note = _load_metric(
+        lambda: InceptionFeatures(cfg.inception_weights, rules.fid_resize, precision=cfg.fid_precision,
+                                  channels_last=cfg.channels_last).to(device), "FID")
     weights = weights_note(cfg, lpips_net is not None, inception is not None)
     truth = TrueMeshes.load(capture_dir / GT_MESHES) if (capture_dir / GT_MESHES).is_file() else None
     labeller = None
@@ -349,7 +365,8 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         timing = {"fit_note": UNRECORDED_FIT_NOTE, **timings[level]}
         summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, protocol=cfg.protocol,
                        protocol_note=rules.note if cfg.protocol != "ours" else "", weights_note=weights,
-                       **timing)
+                       lpips_precision=cfg.lpips_precision, fid_precision=cfg.fid_precision,
+                       precision_note=precision_note(cfg), **timing)
         csv_path = output_dir / f"{split}_lod{level}.csv"
         write_text(csv_path, table.to_csv(index=False, float_format="%.6g"))
         write_json(output_dir / f"{split}_lod{level}.json", summary)

@@ -93,7 +93,7 @@ def has_regions(summaries: pd.DataFrame) -> bool:
 
 
 def _notes(frame: pd.DataFrame) -> str:
-    notes = sorted({n for col in ("lpips_note", "fid_note", "fit_note", "protocol_note", "weights_note") if col in frame for n in frame[col].dropna() if n})
+    notes = sorted({n for col in ("lpips_note", "fid_note", "fit_note", "protocol_note", "weights_note", "precision_note") if col in frame for n in frame[col].dropna() if n})
     return "; ".join(notes)
 
 
