@@ -16,9 +16,11 @@ import scipy.fft
 import scipy.sparse as sp
 import torch
 
+from pig.config import ConfigError
 from pig.field.knn_solve import CGSystem
 from pig.field.lattice_solve import LatticeSystem
-from pig.field.precondition import PreconditionedTensor
+from pig.field.optim import build_optimizer
+from pig.field.precondition import PrecondConfig, PreconditionedTensor
 
 from precond_fit_fixture import observe_fit, paper_test_preset
 
@@ -191,3 +193,30 @@ def test_adam_steps_of_the_fit_are_adam_on_u_seeing_a_inverse_g(fits, name):
     moved = (record.steps[-1]["x"][name] - record.x0[name]).numpy().ravel()
     cosine = moved @ sgd.ravel() / (np.linalg.norm(moved) * np.linalg.norm(sgd))
     assert cosine < 0.99
+
+
+@pytest.mark.parametrize("kind", ["adam", "uniform_adam"])
+def test_adam_eps_of_the_field_optimiser_is_configurable_and_damps_steps_of_gradients_near_it(kind):
+    """precond.adam_eps (default 1e-8, torch's) sets the field optimiser's eps: a first step on gradients of 1e-9
+    (the size of the fine grid levels' in the fit) is lr g / (|g| + eps): ~0.09 lr at 1e-8, ~lr at 1e-15."""
+    assert PrecondConfig().adam_eps == 1e-8
+    moved = {}
+    for eps in (1e-8, 1e-15):
+        p = torch.nn.Parameter(torch.zeros(4, dtype=torch.float64))
+        opt = build_optimizer(kind, [{"params": [p], "lr": 0.1}], eps)
+        p.grad = torch.full((4,), -1e-9, dtype=torch.float64)
+        opt.step()
+        moved[eps] = float(p.detach()[0])
+    assert moved[1e-8] == pytest.approx(0.1 * 1e-9 / (1e-9 + 1e-8), rel=1e-9)
+    assert moved[1e-15] == pytest.approx(0.1, rel=1e-5)
+    with pytest.raises(ConfigError, match="precond.adam_eps"):
+        PrecondConfig(adam_eps=0.0)
+
+
+def test_the_fit_builds_its_fused_field_adam_with_precond_adam_eps(small_capture, tmp_path):
+    preset = paper_test_preset(tmp_path / "eps.yaml", 1, {"adam_eps": 1e-15})
+    record = observe_fit(small_capture, tmp_path / "fit", preset, build_only=True)
+    field_opt, decoder_opt = record.optimizers
+    assert isinstance(field_opt, torch.optim.Adam) and all(group["fused"] for group in field_opt.param_groups)
+    assert {group["eps"] for group in field_opt.param_groups} == {1e-15}
+    assert {group["eps"] for group in decoder_opt.param_groups} == {1e-8}
