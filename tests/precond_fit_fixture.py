@@ -52,9 +52,11 @@ class _Built(Exception):
     """Stops a fit once its model and optimisers are built (`observe_fit(..., build_only=True)`)."""
 
 
-def observe_fit(capture: Path, out: Path, preset: str, variant: str = "pig", build_only: bool = False) -> FitRecord:
+def observe_fit(capture: Path, out: Path, preset: str, variant: str = "pig", build_only: bool = False,
+                device: str = "cpu", gradients_only: bool = False) -> FitRecord:
     """Run the fit and return what it did to its grid levels and anchors, step by step; with `build_only`, stop
-    before its first step (the record holds the model and optimisers as the fit built them, no steps)."""
+    before its first step (the record holds the model and optimisers as the fit built them, no steps);
+    `gradients_only`: per step only dL/dx and the rates (a long fit's record in a bounded memory)."""
     record = FitRecord()
     pending: dict[str, torch.Tensor] = {}
     real_build = training.build_optimizers
@@ -69,22 +71,27 @@ def observe_fit(capture: Path, out: Path, preset: str, variant: str = "pig", bui
         for module, name in record.names.items():
             record.systems[name] = module.system
             with torch.no_grad():
-                record.x0[name] = module().detach().double().clone()
-            module.register_forward_hook(_keep_gradient_of_x(name, pending))
+                record.x0[name] = module().detach().to("cpu", torch.float64).clone()
+            # The fit's gradients are float32: kept so where memory is bounded, else in float64 for the references.
+            module.register_forward_hook(_keep_gradient_of_x(name, pending, torch.float32 if gradients_only else torch.float64))
         field_opt = optimizers[0]
         params = {module.param: name for module, name in record.names.items()}
+        module_of = {module.param: module for module in record.names}
 
         def before_step(opt, args, kwargs):
             lrs = {params[p]: group["lr"] for group in opt.param_groups for p in group["params"]}
-            grads = {params[p]: p.grad.detach().double().clone() for p in params if p.grad is not None}
+            grads = {params[p]: p.grad.detach().to("cpu", torch.float64).clone() for p in params
+                     if p.grad is not None and (module_of[p].form == "none" or not gradients_only)}
             # Form "none": x is the parameter itself, so dL/dx is its gradient (no hook on a leaf needed).
             dx = {name: pending.pop(name, grads.get(name)) for name in params.values()}
-            record.steps.append({"dx": dx, "grad": grads, "lr": lrs})
+            record.steps.append({"dx": dx, "lr": lrs} if gradients_only else {"dx": dx, "grad": grads, "lr": lrs})
 
         def after_step(opt, args, kwargs):
+            if gradients_only:
+                return
             with torch.no_grad():
-                record.steps[-1]["x"] = {name: module().detach().double().clone() for module, name in record.names.items()}
-                record.steps[-1]["param"] = {name: module.param.detach().double().clone() for module, name in record.names.items()}
+                record.steps[-1]["x"] = {name: module().detach().to("cpu", torch.float64).clone() for module, name in record.names.items()}
+                record.steps[-1]["param"] = {name: module.param.detach().to("cpu", torch.float64).clone() for module, name in record.names.items()}
 
         field_opt.register_step_pre_hook(before_step)
         field_opt.register_step_post_hook(after_step)
@@ -95,14 +102,14 @@ def observe_fit(capture: Path, out: Path, preset: str, variant: str = "pig", bui
     with pytest.MonkeyPatch.context() as monkeypatch:
         monkeypatch.setattr(training, "build_optimizers", build)
         try:
-            training.fit(capture, out, preset, variant=variant)
+            training.fit(capture, out, preset, variant=variant, device=device)
         except _Built:
             pass
     return record
 
 
-def _keep_gradient_of_x(name: str, pending: dict):
+def _keep_gradient_of_x(name: str, pending: dict, dtype: torch.dtype):
     def hook(module, args, x):
         if x.requires_grad and module.form != "none":  # a training step's x (evaluations run without gradients)
-            x.register_hook(lambda grad: pending.__setitem__(name, grad.detach().double().clone()))
+            x.register_hook(lambda grad: pending.__setitem__(name, grad.detach().to("cpu", dtype).clone()))
     return hook
