@@ -18,7 +18,6 @@ import yaml
 
 import pig.avatar.training as training
 from pig.config import load_preset
-from pig.field.precondition import PreconditionedTensor
 
 
 def paper_test_preset(path: Path, iterations: int, precond: dict | None = None) -> str:
@@ -41,11 +40,10 @@ class FitRecord:
     optimizers: list = None
     names: dict = field(default_factory=dict)  # preconditioned tensor module -> "grid<g>" / "anchors"
     x0: dict = field(default_factory=dict)  # name -> x before the first step
-    steps: list = field(default_factory=list)  # per step: {"dx": {name: dL/dx}, "grad": {name: param.grad}, "lr", "x", "param": {name: ...}}
+    # Per step {"dx", "grad", "lr", "x", "param"}, each {name: ...}: dL/dx, the optimised variable's gradient, the
+    # rate, x and that variable after the step.
+    steps: list = field(default_factory=list)
     systems: dict = field(default_factory=dict)  # name -> the system object at build time
-
-    def module(self, name: str) -> PreconditionedTensor:
-        return next(m for m, n in self.names.items() if n == name)
 
 
 class _Built(Exception):
@@ -73,7 +71,8 @@ def observe_fit(capture: Path, out: Path, preset: str, variant: str = "pig", bui
             with torch.no_grad():
                 record.x0[name] = module().detach().to("cpu", torch.float64).clone()
             # The fit's gradients are float32: kept so where memory is bounded, else in float64 for the references.
-            module.register_forward_hook(_keep_gradient_of_x(name, pending, torch.float32 if gradients_only else torch.float64))
+            dtype = torch.float32 if gradients_only else torch.float64
+            module.register_forward_hook(_keep_gradient_of_x(name, pending, dtype))
         field_opt = optimizers[0]
         params = {module.param: name for module, name in record.names.items()}
         module_of = {module.param: module for module in record.names}
@@ -90,8 +89,9 @@ def observe_fit(capture: Path, out: Path, preset: str, variant: str = "pig", bui
             if gradients_only:
                 return
             with torch.no_grad():
-                record.steps[-1]["x"] = {name: module().detach().to("cpu", torch.float64).clone() for module, name in record.names.items()}
-                record.steps[-1]["param"] = {name: module.param.detach().to("cpu", torch.float64).clone() for module, name in record.names.items()}
+                for key, value in (("x", lambda m: m()), ("param", lambda m: m.param)):
+                    record.steps[-1][key] = {name: value(module).detach().to("cpu", torch.float64).clone()
+                                             for module, name in record.names.items()}
 
         field_opt.register_step_pre_hook(before_step)
         field_opt.register_step_post_hook(after_step)
