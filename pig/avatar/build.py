@@ -99,7 +99,10 @@ def build_optimizers(model: AvatarModel, lr_decoders: float, lr_refine: float, p
     as pig.field.optim.Adam up to float rounding."""
     adam = (lambda groups: torch.optim.Adam(groups, fused=True)) if fused else Adam
     field_groups = field_param_groups(model.grid, model.anchors, precond)
-    field = adam(field_groups) if fused and precond.optimizer == "adam" else build_optimizer(precond.optimizer, field_groups)
+    if fused and precond.optimizer == "adam":
+        field = torch.optim.Adam(field_groups, fused=True, eps=precond.adam_eps)
+    else:
+        field = build_optimizer(precond.optimizer, field_groups, precond.adam_eps)
     groups = [{"name": "decoders", "params": list(model.decoder.parameters()), "lr": lr_decoders}]
     if model.refiner.net is not None:
         groups.append({"name": "refine", "params": list(model.refiner.parameters()), "lr": lr_refine})

@@ -69,13 +69,13 @@ class UniformAdam(Adam):
         super().__init__(params, lr=lr, betas=betas, eps=eps, uniform=True)
 
 
-def build_optimizer(kind: str, groups: Iterable[dict]) -> torch.optim.Optimizer:
-    """"adam" -> Adam, "uniform_adam" -> UniformAdam, "sgd" -> plain gradient descent, over `groups`."""
+def build_optimizer(kind: str, groups: Iterable[dict], eps: float = 1e-8) -> torch.optim.Optimizer:
+    """"adam" -> Adam, "uniform_adam" -> UniformAdam (both with `eps`), "sgd" -> plain gradient descent, over `groups`."""
     groups = list(groups)
     if kind == "adam":
-        return Adam(groups)
+        return Adam(groups, eps=eps)
     if kind == "uniform_adam":
-        return UniformAdam(groups)
+        return UniformAdam(groups, eps=eps)
     if kind == "sgd":
         return torch.optim.SGD(groups, lr=0.0)
     raise ValueError(f"build_optimizer: expected kind in {OPTIMIZERS}, found {kind!r}")

@@ -76,10 +76,16 @@ class PrecondConfig:
     # level keeps its values and its optimiser state restarts (pig.avatar.training). The anchors are not delayed;
     # form 'none' has nothing to delay.
     grid_delay: int = 0
+    # Adam's eps of the field optimiser ("adam", "uniform_adam"; the decoders keep theirs). The grid's gradients are
+    # of its order (1e-9..1e-6 per cell, smaller still after the substitution's solve), so it damps the fine levels'
+    # steps (benchmarks/NOTES.md, "Fit", issue 38); 1e-8 is torch's default, which the paper does not change.
+    adam_eps: float = 1e-8
 
     def __post_init__(self):
         if self.grid_delay < 0:
             raise ConfigError(f"precond.grid_delay must be at least 0, found {self.grid_delay}")
+        if not self.adam_eps > 0:
+            raise ConfigError(f"precond.adam_eps must be positive, found {self.adam_eps}")
 
     def grid_lrs(self, levels: int) -> list[float]:
         return [self.grid_lr * self.grid_lr_growth**g for g in range(levels)]
