@@ -37,6 +37,7 @@ import csv
 import gc
 import gzip
 import math
+import re
 import shutil
 import statistics
 import sys
@@ -62,10 +63,10 @@ MODULES = {"LatentGrid": "model.grid", "PreconditionedTensor": "model.anchor_sol
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
-    """`NAME:section.key=value,...` -> (name, {section: {key: value}})."""
+    """`NAME:section.key=value,...` -> (name, {section: {key: value}}); a value may be a YAML list, `[8,16,24]`."""
     name, _, body = text.partition(":")
     overrides: dict[str, dict] = defaultdict(dict)
-    for item in filter(None, body.split(",")):
+    for item in filter(None, re.split(r",(?![^\[]*\])", body)):  # no split inside a list's brackets
         key, _, value = item.partition("=")
         section, _, field = key.strip().partition(".")
         overrides[section][field] = yaml.safe_load(value)

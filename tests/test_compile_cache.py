@@ -1,5 +1,5 @@
-"""benchmarks/fit_gpu.py --compile-cache: torch.compile's artifacts written gzipped and loaded back (the GPU holds
-carry them from one machine to the next so that most of a fit's compilation is skipped)."""
+"""benchmarks/fit_gpu.py --compile-cache: torch.compile's artifacts written gzipped and loaded back (a later round of
+fits in a GPU hold skips most of its compilation)."""
 import sys
 from pathlib import Path
 
