@@ -5,6 +5,7 @@ preconditioned per Eqs. 4-5, decoders (Eqs. 8-9) and refiner (Eq. 13); the paper
 """
 from __future__ import annotations
 
+import functools
 import io
 import zipfile
 from pathlib import Path
@@ -97,10 +98,10 @@ def build_optimizers(model: AvatarModel, lr_decoders: float, lr_refine: float, p
 
     `fused`: torch's fused Adam (one kernel for all tensors) wherever the step is plain Adam; the same update
     as pig.field.optim.Adam up to float rounding."""
-    adam = (lambda groups: torch.optim.Adam(groups, fused=True)) if fused else Adam
+    adam = functools.partial(torch.optim.Adam, fused=True) if fused else Adam
     field_groups = field_param_groups(model.grid, model.anchors, precond)
     if fused and precond.optimizer == "adam":
-        field = torch.optim.Adam(field_groups, fused=True, eps=precond.adam_eps)
+        field = adam(field_groups, eps=precond.adam_eps)
     else:
         field = build_optimizer(precond.optimizer, field_groups, precond.adam_eps)
     groups = [{"name": "decoders", "params": list(model.decoder.parameters()), "lr": lr_decoders}]

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pig.metrics.precision import check_precision, network_arithmetic
+from pig.metrics.precision import check_precision, network_arithmetic, widened
 from pig.metrics.weights import INCEPTION_FILE, WeightsMissing, locate
 
 # Below this many images per set the FID is still computed, but flagged: with 2048 feature dimensions its
@@ -190,5 +190,5 @@ class InceptionFeatures(torch.nn.Module):
         with network_arithmetic(scaled.device.type, self.precision):
             features = self.model(scaled, return_features=True)
         if self.precision != "float32":
-            features = features.to(torch.promote_types(features.dtype, torch.float32))
+            features = widened(features)
         return features.reshape(images.shape[0], -1)

@@ -20,7 +20,7 @@ from typing import Literal
 import torch
 import torch.nn as nn
 
-from pig.metrics.precision import check_precision, network_arithmetic
+from pig.metrics.precision import check_precision, network_arithmetic, widened
 from pig.metrics.weights import (
     LPIPS_LINEAR_FILES,
     TORCHVISION_FILES,
@@ -146,7 +146,7 @@ class LPIPS(nn.Module):
             for index, layer in enumerate(self.features):
                 h = layer(h)
                 if index in self.taps:
-                    taps.append(h.to(torch.promote_types(h.dtype, torch.float32)) if widen else h)
+                    taps.append(widened(h) if widen else h)
                     if len(taps) == len(self.taps):
                         break
         return taps

@@ -25,3 +25,8 @@ def network_arithmetic(device_type: str, precision: str):
     if precision == "float32":
         return contextlib.nullcontext()
     return torch.autocast(device_type, PRECISIONS[precision])
+
+
+def widened(features: torch.Tensor) -> torch.Tensor:
+    """A lowered network's output in float32 (float64 stays float64), before any distance or statistic."""
+    return features.to(torch.promote_types(features.dtype, torch.float32))
