@@ -8,7 +8,9 @@ novel-view PSNR read off each fit's curve at 1, 2, 5 and 10 minutes (labelled "c
 evaluations around that time, every 1000 iterations). A fit whose JSON never came back (the hold ended during its
 final evaluation) is listed with `log` and `text` instead: its curve from the train log, its final metrics from
 the evaluate lines it printed, and "-" for a split it did not reach. `--plot` draws error against training time,
-one panel per metric, both subjects:
+one panel per metric, both subjects. Last, how much each curve wobbles over its last 60 % of training seconds (a
+fit's final value is one draw from that wobble): the evaluations' mean, sd and mean |dip| (each inner evaluation
+against the mean of its two neighbours):
 
     python benchmarks/equal_time.py --plot docs/equal_time.png
 """
@@ -34,6 +36,7 @@ METRICS = [("NV PSNR", "novel_view", "psnr", 2), ("NV SSIM", "novel_view", "ssim
            ("body acc / comp mm", "novel_view", ("accuracy_mm_body", "completeness_mm_body"), 1),
            ("drift mm", "novel_view", "drift_mm", 1)]
 CURVE_MINUTES = (1, 2, 5, 10)
+WOBBLE_FROM = 0.4  # the wobble table reads the curve from this fraction of the training seconds on
 SUMMARY_KEYS = ("psnr", "ssim", "psnr_garment", "psnr_body", "accuracy_mm_garment", "completeness_mm_garment",
                 "accuracy_mm_body", "completeness_mm_body", "drift_mm")
 # The evaluate stage's printed summary of one split and LOD (pig/stages/evaluate.py), images, then regions.
@@ -98,6 +101,15 @@ def read_off(curve: list[tuple[float, float]], seconds: float) -> float:
     return float(np.interp(seconds, times, values))
 
 
+def wobble(curve: list[tuple[float, float]]) -> tuple[int, float, float, float]:
+    """(evaluations, mean, sd, mean |dip|) of the held-out PSNR over the curve's late part (NaN where too short)."""
+    late = np.array([psnr for seconds, psnr in curve if seconds >= WOBBLE_FROM * curve[-1][0]]) if curve else []
+    if len(late) < 3:
+        return len(late), math.nan, math.nan, math.nan
+    dips = late[1:-1] - (late[:-2] + late[2:]) / 2
+    return len(late), float(late.mean()), float(late.std()), float(np.abs(dips).mean())
+
+
 def cell(values: list, decimals: int) -> str:
     if isinstance(values[0], tuple):
         return " / ".join(cell([v[i] for v in values], decimals) for i in range(len(values[0])))
@@ -128,6 +140,15 @@ def table(fits: list[dict]) -> str:
         values = [read_off(fit["curve"], 60 * m) for m in CURVE_MINUTES]
         lines.append(f"| {fit['seed']} | {fit['budget_s'] / 60:g} min | {fit['variant']} | {fit['replicate']} | "
                      + " | ".join("-" if math.isnan(v) else f"{v:.2f}" for v in values) + " |")
+    lines += ["", f"Wobble of the held-out novel-view PSNR from {WOBBLE_FROM:.0%} of the training seconds on", "",
+              "| seed | budget | variant | fit | evaluations | mean dB | sd dB | mean abs dip dB | final dB |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for fit in sorted(fits, key=lambda f: (f["seed"], f["budget_s"], f["variant"], f["replicate"])):
+        count, mean, sd, dip = wobble(fit["curve"])
+        final = fit["curve"][-1][1] if fit["curve"] else math.nan
+        lines.append(f"| {fit['seed']} | {fit['budget_s'] / 60:g} min | {fit['variant']} | {fit['replicate']} | "
+                     f"{count} | " + " | ".join("-" if math.isnan(v) else f"{v:.2f}" for v in (mean, sd, dip, final))
+                     + " |")
     return "\n".join(lines)
 
 

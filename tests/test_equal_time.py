@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from equal_time import SUMMARY_KEYS, fit_from_json, fit_from_log, printed_metrics, table  # noqa: E402
+from equal_time import SUMMARY_KEYS, fit_from_json, fit_from_log, printed_metrics, table, wobble  # noqa: E402
 
 RUNS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_runs"
 # run27's no_precond came back whole: its JSON is the reference for what the printed lines and log give.
@@ -59,3 +59,10 @@ def test_replicates_average_the_splits_that_came_back_and_say_how_many():
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[5] == f"{whole['final']['novel_view']['psnr'] - 0.5:.2f} ± 0.50"
     assert cells[7] == f"{whole['final']['novel_pose']['psnr']:.2f} (1 of 2)"
+
+
+def test_wobble_reads_the_late_curve_and_measures_each_dip_against_its_neighbours():
+    # From 40 % of 10 s on: 30, 32, 30, 32 (mean 31, sd 1); the inner dips +2 and -2.
+    assert wobble([(0.0, 20.0), (4.0, 30.0), (6.0, 32.0), (8.0, 30.0), (10.0, 32.0)]) == (4, 31.0, 1.0, 2.0)
+    count, mean, sd, dip = wobble([(0.0, 20.0), (9.0, 30.0), (10.0, 31.0)])
+    assert count == 2 and all(math.isnan(v) for v in (mean, sd, dip))
