@@ -27,7 +27,8 @@ LOD the ground-truth metrics (regions, geometry, drift) where the evaluate stage
 variant at each of them with its difference to the first variant's (the parity check of two paths);
 `--plot PATH` draws those curves. After the timed iterations, `--profile-phases N`
 runs N more with the device synchronised around each part of an iteration (`fit(phase=...)`) and
-around the model's submodules, and prints median ms per part; `--profile-ops N` runs N more under
+around the model's submodules outside compiled regions (with `fit.compile_posing` the body model runs inside the
+compiled posing: no model.body row, its time is in `model`), and prints median ms per part; `--profile-ops N` runs N more under
 torch.profiler and prints the operators that take the most device time.
 """
 from __future__ import annotations
@@ -115,15 +116,22 @@ class PhaseTimer:
         self.synchronize()
         self.current[name] += time.perf_counter() - t0
 
+    def _timed(self, module) -> bool:
+        """Whether `module`'s call is timed. Never inside a compiled region (the compiled posing calls BodyModel):
+        traced there, the hooks' clock read (time.perf_counter, a builtin Dynamo cannot trace) broke the graph, and
+        `active`, guarded, recompiled the region when profiling began (benchmarks/NOTES.md, Fit, issue 42's
+        graph break). Dynamo reads is_compiling() as True while it traces, so nothing after it is traced or guarded."""
+        return not torch.compiler.is_compiling() and self.active and type(module).__name__ in MODULES
+
     def _pre(self, module, args):
-        if self.active and type(module).__name__ in MODULES:
+        if self._timed(module):
             self.depth += 1
             if self.depth == 1:
                 self.synchronize()
                 self._starts.append(time.perf_counter())
 
     def _post(self, module, args, output):
-        if self.active and type(module).__name__ in MODULES:
+        if self._timed(module):
             if self.depth == 1:
                 self.synchronize()
                 self.current[MODULES[type(module).__name__]] += time.perf_counter() - self._starts.pop()

@@ -57,6 +57,7 @@ from pathlib import Path
 
 import torch
 import yaml
+from torch._dynamo.utils import counters
 
 from pig.config import load_preset
 
@@ -80,19 +81,27 @@ class RankProbe:
     def __init__(self, out: str, warmup: int, iterations: int, profile: int, rank: int):
         self.out, self.warmup, self.iterations, self.profile, self.rank = Path(out), warmup, iterations, profile, rank
         self.marks: dict[int, float] = {}
+        self.graphs = {0: counters["stats"]["unique_graphs"]}  # graphs compiled so far, at the window's ends
         self.timer = PhaseTimer() if profile else None
 
     def __call__(self, iteration: int) -> None:
         if iteration in (self.warmup, self.iterations):
             torch.cuda.synchronize()
             self.marks[iteration] = time.perf_counter()
+            self.graphs[iteration] = counters["stats"]["unique_graphs"]
         if self.timer is not None:
             self.timer.end_iteration()
             self.timer.active = self.iterations <= iteration < self.iterations + self.profile
         if iteration == self.iterations + self.profile:
             record = {"rank": self.rank, "ms": 1000 * (self.marks[self.iterations] - self.marks[self.warmup])
                       / (self.iterations - self.warmup), "peak_gib": torch.cuda.max_memory_allocated() / 2**30,
-                      "phases_ms": self.timer.medians_ms() if self.timer else {}}
+                      "phases_ms": self.timer.medians_ms() if self.timer else {},
+                      # Graphs torch.compile built in the warm-up, the timed window and the profiled iterations (want
+                      # 0 after the warm-up), and its graph breaks (want 0; benchmarks/compile_breaks_cpu.py on the CPU).
+                      "graphs": [self.graphs[self.warmup] - self.graphs[0],
+                                 self.graphs[self.iterations] - self.graphs[self.warmup],
+                                 counters["stats"]["unique_graphs"] - self.graphs[self.iterations]],
+                      "graph_breaks": sum(counters["graph_break"].values())}
             (self.out / f"rank{self.rank}.json").write_text(json.dumps(record))
 
     def phase(self, name: str):
@@ -177,6 +186,7 @@ def gather(workdir: Path, gpus: int, mode: str) -> dict:
     ranks = [json.loads(p.read_text()) for p in sorted(out.glob("rank*.json"), key=lambda p: int(p.stem[4:]))]
     return {"gpus": gpus, "ms": max(r["ms"] for r in ranks), "peak_gib": [r["peak_gib"] for r in ranks],
             "phases_ms": ranks[0]["phases_ms"], "rank_phases_ms": [r["phases_ms"] for r in ranks], "sharded": False,
+            "rank_graphs": [(r.get("graphs"), r.get("graph_breaks")) for r in ranks],
             **json.loads((out / "run.json").read_text())}
 
 
@@ -256,6 +266,10 @@ def main(argv=None) -> int:
         solves = "one process" if r["gpus"] == 1 else "sharded" if r["sharded"] else "every rank"
         print(f"| {r['gpus']} | {solves} | {r['ms']:.1f} | {speedup:.2f}x | {100 * speedup / r['gpus']:.0f} % | "
               f"{' / '.join(f'{p:.2f}' for p in r['peak_gib'])} | {r['ms'] * 1e5 / 6e4:.0f} min |")
+    print("\nGraphs compiled per rank in the warm-up / the timed window / the profiled iterations, and graph breaks:")
+    for r in results:
+        print(f"{label(r)}: " + ", ".join(f"rank {rank} {'/'.join(map(str, graphs)) if graphs else '-'}, {breaks} breaks"
+                                          for rank, (graphs, breaks) in enumerate(r["rank_graphs"])))
     if args.profile_phases:
         names = sorted({k for r in results for k in r["phases_ms"]})
         print(f"\nPer-phase ms on rank 0 (median of {args.profile_phases} synchronised iterations; model.* lie inside "
