@@ -103,11 +103,11 @@ class RankCount:
             from torch._dynamo.utils import counters
 
             breaks = {" ".join(reason.split("\n")[:3]): count for reason, count in counters["graph_break"].items()}
+            timed = self.timer.medians_ms() if self.timer is not None else {}
             record = {"rank": self.rank, "graph_breaks": sum(breaks.values()), "break_reasons": breaks,
                       "graphs": counters["stats"]["unique_graphs"], "recompiles": len(self.recompiles.records),
                       "recompiled": self.recompiles.records,
-                      "phases": sorted(k for k, ms in self.timer.medians_ms().items() if k.startswith("model.") and ms > 0)
-                      if self.timer is not None else []}
+                      "phases": sorted(k for k, ms in timed.items() if k.startswith("model.") and ms > 0)}
             self.path.write_text(json.dumps(record))
 
 

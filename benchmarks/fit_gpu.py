@@ -28,8 +28,8 @@ variant at each of them with its difference to the first variant's (the parity c
 `--plot PATH` draws those curves. After the timed iterations, `--profile-phases N`
 runs N more with the device synchronised around each part of an iteration (`fit(phase=...)`) and
 around the model's submodules outside compiled regions (with `fit.compile_posing` the body model runs inside the
-compiled posing: no model.body row, its time is in `model`), and prints median ms per part; `--profile-ops N` runs N more under
-torch.profiler and prints the operators that take the most device time.
+compiled posing: no model.body row, its time is in `model`), and prints median ms per part; `--profile-ops N`
+runs N more under torch.profiler and prints the operators that take the most device time.
 """
 from __future__ import annotations
 
@@ -119,8 +119,9 @@ class PhaseTimer:
     def _timed(self, module) -> bool:
         """Whether `module`'s call is timed. Never inside a compiled region (the compiled posing calls BodyModel):
         traced there, the hooks' clock read (time.perf_counter, a builtin Dynamo cannot trace) broke the graph, and
-        `active`, guarded, recompiled the region when profiling began (benchmarks/NOTES.md, Fit, issue 42's
-        graph break). Dynamo reads is_compiling() as True while it traces, so nothing after it is traced or guarded."""
+        `active`, guarded, recompiled every compiled graph when profiling began (benchmarks/NOTES.md, "run29's graph
+        break was the step timer's"). Dynamo reads is_compiling() as True while it traces: nothing after it is
+        traced or guarded."""
         return not torch.compiler.is_compiling() and self.active and type(module).__name__ in MODULES
 
     def _pre(self, module, args):

@@ -268,7 +268,7 @@ def main(argv=None) -> int:
               f"{' / '.join(f'{p:.2f}' for p in r['peak_gib'])} | {r['ms'] * 1e5 / 6e4:.0f} min |")
     print("\nGraphs compiled per rank in the warm-up / the timed window / the profiled iterations, and graph breaks:")
     for r in results:
-        print(f"{label(r)}: " + ", ".join(f"rank {rank} {'/'.join(map(str, graphs)) if graphs else '-'}, {breaks} breaks"
+        print(f"{label(r)}: " + ", ".join(f"rank {rank} {'/'.join(map(str, graphs or ['-']))}, {breaks} breaks"
                                           for rank, (graphs, breaks) in enumerate(r["rank_graphs"])))
     if args.profile_phases:
         names = sorted({k for r in results for k in r["phases_ms"]})

@@ -13,16 +13,15 @@ PROFILE_FROM = 2  # the timer on for the last two iterations
 
 def test_step_timer_and_data_parallel_fit_add_no_graph_break_or_recompilation(small_capture, tmp_path):
     # Dynamo's tracing alone (the eager backend): its breaks and guards are those of any backend, in seconds.
-    plain = run(tmp_path, small_capture, 1, ITERATIONS, None, "eager")
-    [one] = run(tmp_path, small_capture, 1, ITERATIONS, PROFILE_FROM, "eager")
+    [one] = run(tmp_path, small_capture, 1, ITERATIONS, None, "eager")
     two = run(tmp_path, small_capture, 2, ITERATIONS, PROFILE_FROM, "eager")
-    assert plain[0]["graph_breaks"] == 0 and plain[0]["graphs"] >= 3  # decoders, posing, loss: compiled whole
-    # The timer's module hooks ran inside the compiled regions: their clock read broke the posing graph and their
-    # `active` flag, guarded, recompiled every graph when profiling began (6 breaks, 13 graphs against 8).
-    assert [r["graph_breaks"] for r in [one] + two] == [0, 0, 0], [r["break_reasons"] for r in [one] + two]
-    assert (one["graphs"], one["recompiles"]) == (plain[0]["graphs"], plain[0]["recompiles"]), one["recompiled"]
-    # Each rank compiles no more than one process does (rank 1 less: rank 0 alone evaluates, without grad).
+    assert one["graph_breaks"] == 0 and one["graphs"] >= 3  # decoders, posing, loss: each compiled whole
+    # Two ranks with the timer on mid-fit: no break, and each rank compiles no more than one process without the
+    # timer (rank 1 less: rank 0 alone evaluates, without grad). The timer's module hooks ran inside the compiled
+    # regions: their clock read broke the posing graph and their `active` flag, guarded, recompiled every graph when
+    # profiling began (before the fix: 5 breaks on each rank, 11 and 9 graphs against 6).
+    assert [r["graph_breaks"] for r in two] == [0, 0], [r["break_reasons"] for r in two]
     for rank in two:
         assert rank["graphs"] <= one["graphs"] and rank["recompiles"] <= one["recompiles"], rank["recompiled"]
     # The timer still times the model's parts that run outside a compiled region.
-    assert all({"model.grid", "model.decoders", "model.anchor_solve"} <= set(r["phases"]) for r in [one] + two)
+    assert all({"model.grid", "model.decoders", "model.anchor_solve"} <= set(r["phases"]) for r in two)
