@@ -10,10 +10,8 @@ import yaml
 from pig.avatar.build import build_avatar
 from pig.avatar.checkpoint import load_avatar
 from pig.avatar.config import AvatarConfig
-from pig.avatar.fit_config import FitConfig
 from pig.avatar.losses import band_radius, boundary_band, boundary_band_host, image_loss
 from pig.body.params import SmplxParams
-from pig.config import ConfigError
 from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.render.api import render_gaussians
@@ -357,45 +355,3 @@ def test_threads_argument_takes_the_place_of_the_presets_cpu_threads(small_captu
     assert seen == {"preset": 2, "argument": 1} and torch.get_num_threads() == before
     with pytest.raises(SystemExit):
         main(["--capture", str(small_capture), "--output", str(tmp_path / "zero"), "--preset", str(path), "--threads", "0"])
-
-
-def test_downsampled_view_box_filters_and_keeps_pixel_centres(rng):
-    """A view at half size: each pixel the mean of its 2 x 2 box, the mask by majority, an odd last row dropped,
-    and the point that projects to a box's centre in the full view projects to the small pixel's centre."""
-    from pig.avatar.batches import ViewBatch, downsampled
-
-    images = torch.from_numpy(rng.uniform(size=(2, 7, 6, 3))).float()
-    masks = torch.from_numpy(rng.uniform(size=(2, 7, 6)) < 0.5)
-    K = torch.tensor([[50.0, 0.0, 3.1], [0.0, 55.0, 2.9], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
-    vb = ViewBatch(0, ["a", "b"], torch.eye(4).expand(2, 4, 4), K, images, masks, 6, 7,
-                   bands=torch.zeros(2, 7, 6, dtype=torch.bool))
-    half = downsampled(vb, 2)
-    assert (half.width, half.height) == (3, 3) and half.bands is None
-    boxes = images[:, :6].reshape(2, 3, 2, 3, 2, 3).double().mean(dim=(2, 4))
-    torch.testing.assert_close(half.images.double(), boxes, rtol=0, atol=1e-6)
-    votes = masks[:, :6].reshape(2, 3, 2, 3, 2).double().mean(dim=(2, 4))
-    assert torch.equal(half.masks, votes >= 0.5)
-    # Box (row 1, column 2) spans full pixels 2-3 x 4-5, centre (x, y) = (5, 3) with centres at +0.5; small centre (2.5, 1.5).
-    point = torch.linalg.solve(K[0], torch.tensor([5.0, 3.0, 1.0])) * 3.0
-    projected = half.Ks[0] @ point
-    torch.testing.assert_close(projected[:2] / projected[2], torch.tensor([2.5, 1.5]))
-    assert downsampled(vb, 1) is vb
-
-
-@pytest.mark.slow
-def test_coarse_until_trains_the_first_part_of_the_run_at_half_size(small_capture, tmp_path, monkeypatch):
-    from pig.avatar import training
-
-    sizes, iteration_loss = [], training.iteration_loss
-
-    def recording(model, batch, *args):
-        sizes.append([(vb.width, vb.height) for views in batch.views for vb in views])
-        return iteration_loss(model, batch, *args)
-
-    monkeypatch.setattr(training, "iteration_loss", recording)
-    preset = write_test_preset(tmp_path, iterations=4, eval_every=100, probe_every=0, coarse_until=0.5)
-    training.fit(small_capture, tmp_path / "fit", preset)
-    (width, height), = sizes[-1]
-    assert sizes == [[(width // 2, height // 2)]] * 2 + [[(width, height)]] * 2
-    with pytest.raises(ConfigError, match="coarse_until"):
-        FitConfig(coarse_until=1.5)

@@ -46,19 +46,6 @@ class ViewBatch:
     bands: torch.Tensor | None = None  # (V, H, W) bool silhouette band, when the source computes it
 
 
-def downsampled(vb: ViewBatch, factor: int) -> ViewBatch:
-    """`vb` at 1/`factor` its size: images box-filtered over factor x factor pixels (the last rows and columns that
-    do not fill a box dropped), masks by the box's majority, intrinsics scaled (pixel centres at +0.5, so a box's
-    centre lands on the small pixel's); the band is left to the loss to compute from the smaller masks."""
-    if factor == 1:
-        return vb
-    images = torch.nn.functional.avg_pool2d(vb.images.permute(0, 3, 1, 2), factor).permute(0, 2, 3, 1)
-    masks = torch.nn.functional.avg_pool2d(vb.masks[:, None].to(images.dtype), factor)[:, 0] >= 0.5
-    scale = torch.tensor([1.0 / factor, 1.0 / factor, 1.0], dtype=vb.Ks.dtype, device=vb.Ks.device)
-    return ViewBatch(vb.timestep, vb.cameras, vb.viewmats, vb.Ks * scale[:, None], images.contiguous(), masks,
-                     images.shape[2], images.shape[1])
-
-
 @dataclass(frozen=True)
 class ViewShare:
     """A process's part of an iteration's views in a data-parallel fit (pig.avatar.distributed): (index of the

@@ -33,10 +33,6 @@ class FitConfig:
     # optimised tensors; held-out evaluations and avatar.pt use it. 0: off (the last iterate, the paper's).
     average_decay: float = 0.0
     average_start: float = 0.5
-    # Coarse to fine: before progress `coarse_until` each view is trained on at 1/`coarse_factor` its size (the truth
-    # box-filtered, the masks by majority, the intrinsics scaled; pig.avatar.batches.downsampled). 0: off.
-    coarse_until: float = 0.0
-    coarse_factor: int = 2
     weight_l1: float = 8.0
     weight_ssim: float = 2.0
     weight_lpips: float = 2.0
@@ -116,10 +112,6 @@ class FitConfig:
             raise ConfigError(f"fit.average_decay must lie in [0, 1), found {self.average_decay}")
         if not 0 <= self.average_start <= 1:
             raise ConfigError(f"fit.average_start must lie in [0, 1], found {self.average_start}")
-        if not 0 <= self.coarse_until <= 1:
-            raise ConfigError(f"fit.coarse_until must lie in [0, 1] (a fraction of the run), found {self.coarse_until}")
-        if self.coarse_factor < 1:
-            raise ConfigError(f"fit.coarse_factor must be at least 1, found {self.coarse_factor}")
         if not 0 < self.lr_final <= 1:
             raise ConfigError(f"fit.lr_final must lie in (0, 1], found {self.lr_final}")
         if self.lpips_weights not in ("pretrained", "random"):

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from pig.avatar.averaging import WeightAverage
-from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSource, downsampled
+from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
@@ -520,9 +520,6 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
             loss.at(i, done)
             with phase("sample"):
                 batch = batches.get(i)
-                if done < fit_cfg.coarse_until:
-                    batch = replace(batch, views=[[downsampled(vb, fit_cfg.coarse_factor) for vb in step_batches]
-                                                  for step_batches in batch.views])
             waits.append(batch.wait_s)
             window_waits.append(batch.wait_s)
             with clock.iteration():  # a step that compiles a graph counts as compilation, not training
