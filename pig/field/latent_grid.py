@@ -12,9 +12,15 @@ respect to the features and the query points.
 
 Each level is a PreconditionedTensor with the lattice system (I + lambda_g L_g) of its grid; use
 `volumes()` once per step and pass the result to every `forward(points, volumes)` of that step.
+
+On the CPU with two or more torch threads the levels' lookups run half on a second thread (`sample_levels`):
+torch's 3-D grid_sample parallelises over the batch only, a batch of one here, so each lookup and its backward
+would otherwise keep one core; the results are those of the lookups one after another, bit for bit.
 """
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import torch
@@ -43,10 +49,81 @@ def normalize_points(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -
 
 def sample_volume(volume: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
     """Trilinear lookup of `volume` (d, X, Y, Z) at normalised `coords` (N, 3) -> (N, d), border-clamped."""
-    # grid_sample reads the last coordinate along the first spatial axis, so reverse (x, y, z).
-    grid = coords.flip(-1).reshape(1, 1, 1, -1, 3).to(volume.dtype)
+    grid = _grid_of(coords).to(volume.dtype)
     out = F.grid_sample(volume[None], grid, mode="bilinear", padding_mode="border", align_corners=True)
     return out.reshape(volume.shape[0], -1).T
+
+
+_worker: ThreadPoolExecutor | None = None
+_worker_lock = threading.Lock()
+
+
+def _lookup_worker() -> ThreadPoolExecutor:
+    """The one thread that takes half of the levels' lookups; its own torch ops run on one thread (OpenMP's
+    thread count is per calling thread), so that the two lookups' threads do not spawn more."""
+    global _worker
+    with _worker_lock:
+        if _worker is None:
+            _worker = ThreadPoolExecutor(1, thread_name_prefix="pig-grid", initializer=torch.set_num_threads,
+                                         initargs=(1,))
+        return _worker
+
+
+def _split(work, items: list) -> list:
+    """`work(item)` of each item, the odd-indexed ones on the worker thread, the others here, in items' order."""
+    def run(part):
+        with torch.no_grad():  # a thread's grad mode is its own: nothing here is recorded
+            return [work(item) for item in part]
+
+    far = _lookup_worker().submit(run, items[1::2])
+    near = run(items[0::2])
+    out = [None] * len(items)
+    out[0::2], out[1::2] = near, far.result()
+    return out
+
+
+def _grid_of(coords: torch.Tensor) -> torch.Tensor:
+    # grid_sample reads the last coordinate along the first spatial axis, so reverse (x, y, z).
+    return coords.flip(-1).reshape(1, 1, 1, -1, 3)
+
+
+class _SplitLookups(torch.autograd.Function):
+    """Per-level trilinear lookups (as `sample_volume`) of one grid, forward and backward on two threads."""
+
+    @staticmethod
+    def forward(ctx, grid: torch.Tensor, *volumes: torch.Tensor):
+        ctx.save_for_backward(grid, *volumes)
+        outs = _split(lambda v: torch.grid_sampler(v[None], grid, 0, 1, True), list(volumes))
+        return tuple(out.reshape(volume.shape[0], -1).T for out, volume in zip(outs, volumes))
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads: torch.Tensor):
+        grid, *volumes = ctx.saved_tensors
+        wants_grid, wants_volumes = ctx.needs_input_grad[0], ctx.needs_input_grad[1:]
+
+        def level(args):
+            grad, volume, wants_volume = args
+            return torch.ops.aten.grid_sampler_3d_backward(grad.T.reshape(1, volume.shape[0], 1, 1, -1), volume[None], grid,
+                                                           0, 1, True, [wants_volume, wants_grid])
+
+        parts = _split(level, list(zip(grads, volumes, wants_volumes)))
+        grid_grad = None
+        if wants_grid:  # summed in the order autograd sums the per-level lookups' gradients: the last level's first
+            grid_grad = parts[-1][1]
+            for part in parts[-2::-1]:
+                grid_grad = grid_grad + part[1]
+        return (grid_grad, *(part[0][0] if wants else None for part, wants in zip(parts, wants_volumes)))
+
+
+def sample_levels(volumes: list[torch.Tensor], coords: torch.Tensor) -> torch.Tensor:
+    """Mean over `volumes` of `sample_volume(v, coords)` -> (N, d); on the CPU at two or more torch threads the
+    lookups run on two threads, with the same result bit for bit."""
+    split = (len(volumes) > 1 and coords.device.type == "cpu" and torch.get_num_threads() > 1
+             and all(v.device.type == "cpu" and v.dtype == coords.dtype for v in volumes))
+    if not split:
+        return sum(sample_volume(v, coords) for v in volumes) / len(volumes)
+    return sum(_SplitLookups.apply(_grid_of(coords), *volumes)) / len(volumes)
 
 
 class LatentGrid(nn.Module):
@@ -132,4 +209,4 @@ class LatentGrid(nn.Module):
             raise ValueError(f"LatentGrid: expected points of shape (N, 3), found {tuple(points.shape)}")
         volumes = self.volumes() if volumes is None else volumes
         coords = self.normalize(points)
-        return sum(sample_volume(v, coords) for v in volumes) / len(volumes)
+        return sample_levels(volumes, coords)
