@@ -1,12 +1,10 @@
 """The latent grid against an independent trilinear formula; box mapping, clamping and gradients."""
-import threading
-
 import numpy as np
 import pytest
 import torch
 
 from pig.config import load_preset, load_section
-from pig.field.latent_grid import FieldConfig, LatentGrid, sample_volume
+from pig.field.latent_grid import FieldConfig, LatentGrid
 from pig.field.precondition import PrecondConfig
 
 
@@ -93,52 +91,3 @@ def test_preset_and_bad_input():
         LatentGrid([4], 2, [0, 0, 0], [1, 0, 1], margin=0.0)
     with pytest.raises(ValueError, match="one lambda per level"):
         LatentGrid([4, 8], 2, [0, 0, 0], [1, 1, 1], form="filter", lambdas=[1.0])
-
-
-@pytest.fixture
-def two_threads():
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.mark.parametrize("wants", [(True, True), (False, True), (True, False), (False, False)])
-def test_two_threads_match_the_lookups_one_after_another_bit_for_bit(two_threads, monkeypatch, wants):
-    """At two torch threads a CPU grid's lookups run on two threads, with the same values and gradients (float32,
-    points on and beyond the box's faces, a 1^3 level) as the levels' lookups one after another."""
-    grid = LatentGrid([8, 1, 24, 5, 16], 4, [-0.5, -1.0, 0.2], [0.7, 0.9, 0.5], 0.05)
-    gen = torch.Generator().manual_seed(0)
-    volumes = [torch.randn(level.param.shape, generator=gen) for level in grid.levels]
-    points = torch.rand(3000, 3, generator=gen) * 2.0 - 1.0
-    points[:4] = torch.stack([grid.box_min, grid.box_max, grid.box_max + 1.0, grid.box_min - 1.0])
-    weights = torch.randn(3000, 4, generator=gen)
-    threads = set()
-    real = torch.grid_sampler
-
-    def recording(*args):
-        threads.add(threading.get_ident())
-        return real(*args)
-
-    monkeypatch.setattr(torch, "grid_sampler", recording)
-
-    def run(lookup):
-        vols = [v.clone().requires_grad_(wants[0]) for v in volumes]
-        pts = points.clone().requires_grad_(wants[1])
-        with torch.set_grad_enabled(any(wants)):
-            z = lookup(pts, vols)
-            if any(wants):
-                (z * weights).sum().backward()
-        return z.detach(), [v.grad for v in vols], pts.grad
-
-    split = run(lambda pts, vols: grid(pts, vols))
-    assert len(threads) == 2
-
-    def one_by_one_lookups(pts, vols):
-        coords = grid.normalize(pts)
-        return sum(sample_volume(v, coords) for v in vols) / len(vols)
-
-    one_by_one = run(one_by_one_lookups)
-    assert torch.equal(split[0], one_by_one[0])
-    for a, b in zip(split[1] + [split[2]], one_by_one[1] + [one_by_one[2]]):
-        assert (a is None and b is None) or torch.equal(a, b)

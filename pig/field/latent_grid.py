@@ -19,8 +19,6 @@ would otherwise keep one core; the results are those of the lookups one after an
 """
 from __future__ import annotations
 
-import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import torch
@@ -54,76 +52,45 @@ def sample_volume(volume: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
     return out.reshape(volume.shape[0], -1).T
 
 
-_worker: ThreadPoolExecutor | None = None
-_worker_lock = threading.Lock()
-
-
-def _lookup_worker() -> ThreadPoolExecutor:
-    """The one thread that takes half of the levels' lookups; its own torch ops run on one thread (OpenMP's
-    thread count is per calling thread), so that the two lookups' threads do not spawn more."""
-    global _worker
-    with _worker_lock:
-        if _worker is None:
-            _worker = ThreadPoolExecutor(1, thread_name_prefix="pig-grid", initializer=torch.set_num_threads,
-                                         initargs=(1,))
-        return _worker
-
-
-def _split(work, items: list) -> list:
-    """`work(item)` of each item, the odd-indexed ones on the worker thread, the others here, in items' order."""
-    def run(part):
-        with torch.no_grad():  # a thread's grad mode is its own: nothing here is recorded
-            return [work(item) for item in part]
-
-    far = _lookup_worker().submit(run, items[1::2])
-    near = run(items[0::2])
-    out = [None] * len(items)
-    out[0::2], out[1::2] = near, far.result()
-    return out
-
-
 def _grid_of(coords: torch.Tensor) -> torch.Tensor:
     # grid_sample reads the last coordinate along the first spatial axis, so reverse (x, y, z).
     return coords.flip(-1).reshape(1, 1, 1, -1, 3)
 
 
-class _SplitLookups(torch.autograd.Function):
-    """Per-level trilinear lookups (as `sample_volume`) of one grid, forward and backward on two threads."""
+class _ChannelHalves(torch.autograd.Function):
+    """`sample_volume` with the channels in two halves, a batch of two for grid_sample (a view of the volume, no
+    copy): torch's CPU kernel parallelises over the batch, so both threads work. Values and the volume's gradient
+    are those of one lookup bit for bit; the point gradient sums the halves' channel sums (rounding apart)."""
 
     @staticmethod
-    def forward(ctx, grid: torch.Tensor, *volumes: torch.Tensor):
-        ctx.save_for_backward(grid, *volumes)
-        outs = _split(lambda v: torch.grid_sampler(v[None], grid, 0, 1, True), list(volumes))
-        return tuple(out.reshape(volume.shape[0], -1).T for out, volume in zip(outs, volumes))
+    def forward(ctx, grid: torch.Tensor, volume: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(grid, volume)
+        out = torch.grid_sampler(_halves(volume), grid.expand(2, -1, -1, -1, -1), 0, 1, True)
+        return out.reshape(volume.shape[0], -1).T
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, *grads: torch.Tensor):
-        grid, *volumes = ctx.saved_tensors
-        wants_grid, wants_volumes = ctx.needs_input_grad[0], ctx.needs_input_grad[1:]
+    def backward(ctx, grad: torch.Tensor):
+        grid, volume = ctx.saved_tensors
+        halves = _halves(volume)
+        grad_volume, grad_grid = torch.ops.aten.grid_sampler_3d_backward(
+            grad.T.reshape(2, halves.shape[1], 1, 1, -1), halves, grid.expand(2, -1, -1, -1, -1), 0, 1, True,
+            [ctx.needs_input_grad[1], ctx.needs_input_grad[0]])
+        return (grad_grid.sum(0, keepdim=True) if ctx.needs_input_grad[0] else None,
+                grad_volume.view_as(volume) if ctx.needs_input_grad[1] else None)
 
-        def level(args):
-            grad, volume, wants_volume = args
-            return torch.ops.aten.grid_sampler_3d_backward(grad.T.reshape(1, volume.shape[0], 1, 1, -1), volume[None], grid,
-                                                           0, 1, True, [wants_volume, wants_grid])
 
-        parts = _split(level, list(zip(grads, volumes, wants_volumes)))
-        grid_grad = None
-        if wants_grid:  # summed in the order autograd sums the per-level lookups' gradients: the last level's first
-            grid_grad = parts[-1][1]
-            for part in parts[-2::-1]:
-                grid_grad = grid_grad + part[1]
-        return (grid_grad, *(part[0][0] if wants else None for part, wants in zip(parts, wants_volumes)))
+def _halves(volume: torch.Tensor) -> torch.Tensor:
+    return volume.view(2, volume.shape[0] // 2, *volume.shape[1:])
 
 
 def sample_levels(volumes: list[torch.Tensor], coords: torch.Tensor) -> torch.Tensor:
-    """Mean over `volumes` of `sample_volume(v, coords)` -> (N, d); on the CPU at two or more torch threads the
-    lookups run on two threads, with the same result bit for bit."""
-    split = (len(volumes) > 1 and coords.device.type == "cpu" and torch.get_num_threads() > 1
-             and all(v.device.type == "cpu" and v.dtype == coords.dtype for v in volumes))
-    if not split:
+    """Mean over `volumes` of `sample_volume(v, coords)` -> (N, d); on the CPU each lookup in channel halves."""
+    if coords.device.type != "cpu" or any(v.device.type != "cpu" or v.dtype != coords.dtype or v.shape[0] % 2
+                                          for v in volumes):
         return sum(sample_volume(v, coords) for v in volumes) / len(volumes)
-    return sum(_SplitLookups.apply(_grid_of(coords), *volumes)) / len(volumes)
+    grid = _grid_of(coords)
+    return sum(_ChannelHalves.apply(grid, v) for v in volumes) / len(volumes)
 
 
 class LatentGrid(nn.Module):
