@@ -12,10 +12,6 @@ respect to the features and the query points.
 
 Each level is a PreconditionedTensor with the lattice system (I + lambda_g L_g) of its grid; use
 `volumes()` once per step and pass the result to every `forward(points, volumes)` of that step.
-
-On the CPU with two or more torch threads the levels' lookups run half on a second thread (`sample_levels`):
-torch's 3-D grid_sample parallelises over the batch only, a batch of one here, so each lookup and its backward
-would otherwise keep one core; the results are those of the lookups one after another, bit for bit.
 """
 from __future__ import annotations
 
@@ -47,50 +43,10 @@ def normalize_points(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -
 
 def sample_volume(volume: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
     """Trilinear lookup of `volume` (d, X, Y, Z) at normalised `coords` (N, 3) -> (N, d), border-clamped."""
-    grid = _grid_of(coords).to(volume.dtype)
+    # grid_sample reads the last coordinate along the first spatial axis, so reverse (x, y, z).
+    grid = coords.flip(-1).reshape(1, 1, 1, -1, 3).to(volume.dtype)
     out = F.grid_sample(volume[None], grid, mode="bilinear", padding_mode="border", align_corners=True)
     return out.reshape(volume.shape[0], -1).T
-
-
-def _grid_of(coords: torch.Tensor) -> torch.Tensor:
-    # grid_sample reads the last coordinate along the first spatial axis, so reverse (x, y, z).
-    return coords.flip(-1).reshape(1, 1, 1, -1, 3)
-
-
-class _ChannelHalves(torch.autograd.Function):
-    """`sample_volume` with the channels in two halves, a batch of two for grid_sample (a view of the volume, no
-    copy): torch's CPU kernel parallelises over the batch, so both threads work. Values and the volume's gradient
-    are those of one lookup bit for bit; the point gradient sums the halves' channel sums (rounding apart)."""
-
-    @staticmethod
-    def forward(ctx, grid: torch.Tensor, volume: torch.Tensor) -> torch.Tensor:
-        ctx.save_for_backward(grid, volume)
-        out = torch.grid_sampler(_halves(volume), grid.expand(2, -1, -1, -1, -1), 0, 1, True)
-        return out.reshape(volume.shape[0], -1).T
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad: torch.Tensor):
-        grid, volume = ctx.saved_tensors
-        halves = _halves(volume)
-        grad_volume, grad_grid = torch.ops.aten.grid_sampler_3d_backward(
-            grad.T.reshape(2, halves.shape[1], 1, 1, -1), halves, grid.expand(2, -1, -1, -1, -1), 0, 1, True,
-            [ctx.needs_input_grad[1], ctx.needs_input_grad[0]])
-        return (grad_grid.sum(0, keepdim=True) if ctx.needs_input_grad[0] else None,
-                grad_volume.view_as(volume) if ctx.needs_input_grad[1] else None)
-
-
-def _halves(volume: torch.Tensor) -> torch.Tensor:
-    return volume.view(2, volume.shape[0] // 2, *volume.shape[1:])
-
-
-def sample_levels(volumes: list[torch.Tensor], coords: torch.Tensor) -> torch.Tensor:
-    """Mean over `volumes` of `sample_volume(v, coords)` -> (N, d); on the CPU each lookup in channel halves."""
-    if coords.device.type != "cpu" or any(v.device.type != "cpu" or v.dtype != coords.dtype or v.shape[0] % 2
-                                          for v in volumes):
-        return sum(sample_volume(v, coords) for v in volumes) / len(volumes)
-    grid = _grid_of(coords)
-    return sum(_ChannelHalves.apply(grid, v) for v in volumes) / len(volumes)
 
 
 class LatentGrid(nn.Module):
@@ -176,4 +132,4 @@ class LatentGrid(nn.Module):
             raise ValueError(f"LatentGrid: expected points of shape (N, 3), found {tuple(points.shape)}")
         volumes = self.volumes() if volumes is None else volumes
         coords = self.normalize(points)
-        return sample_levels(volumes, coords)
+        return sum(sample_volume(v, coords) for v in volumes) / len(volumes)
