@@ -6,9 +6,13 @@ held-out splits and the evaluate stage at the finest LOD, as the default target 
 last iterate where it keeps one, `fit.average_decay`) and the mean per candidate. The CPU fit is deterministic for a given
 thread count, so the PSNRs repeat exactly; the seed (`fit.seed`: initialisation and batch order) is what spreads
 them, so compare candidates over several seeds. `--jobs 2` runs two fits side by side (one thread each): their
-PSNRs stay exact, their times do not. `--processes N` fits each candidate as N gloo processes of `--threads` threads
+PSNRs stay exact, their times do not. A second table gives each fit's probe PSNR by iteration (`fit.probe_every`). `--processes N` fits each candidate as N gloo processes of `--threads` threads
 (pig.avatar.parallel_fit, the data-parallel fit of `pig fit --gpus N`, on the CPU): each process takes its share of
 the batch's views, so `fit.views` must be at least N.
+
+A candidate is `NAME:section.key=value,...` (fit_gpu.parse_variant); the longest part of NAME up to a `_` that names
+one of the preset's method variants picks that variant (`no_precond_eps:precond.adam_eps=1.0e-15` fits
+`no_precond`, `pig_uniform:...` and `default:` fit `pig`), in both modes.
 
 Step cost (`--steps N`): per candidate, N iterations of the fit with `--threads` torch threads, seconds per
 iteration over iterations 10..N, the candidates taken in turn `--repeats` times in one process; `--profile-ops K`
@@ -19,6 +23,8 @@ drifts, so interleaved rounds are the fair comparison).
 
     python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --seeds 0 1 --jobs 2 \\
         --candidate default: --candidate d8:field.features=8,fit.iterations=1800
+    python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --seeds 0 \\
+        --candidate pig: --candidate pig_uniform:precond.form=filter,precond.optimizer=uniform_adam
     python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --steps 40 --threads 1 \\
         --candidate default: --candidate d8:field.features=8
     python benchmarks/cpu_default.py --capture results/synthetic/subject00/capture --steps 30 --threads 2 \\
@@ -56,9 +62,18 @@ def write_preset(base: str, overrides: dict, path: Path, **fit) -> Path:
     return path
 
 
+def method_variant(name: str, variants: dict) -> str:
+    """The preset variant a candidate NAME fits: its longest prefix ending at a `_` (or NAME itself) that is one of
+    `variants`, else `pig`."""
+    parts = name.split("_")
+    prefixes = ("_".join(parts[:n]) for n in range(len(parts), 0, -1))
+    return next((prefix for prefix in prefixes if prefix in variants), "pig")
+
+
 def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path, base: str, threads: int,
             processes: int = 1) -> dict:
     """Fit, render both splits, evaluate the finest LOD; the stages as subprocesses, as the workflow runs them."""
+    variant = method_variant(name, load_preset(base)["variants"])
     root = workdir / f"{name}_seed{seed}"
     shutil.rmtree(root, ignore_errors=True)
     root.mkdir(parents=True)
@@ -73,12 +88,13 @@ def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path,
     if processes > 1:  # the fit stage starts several processes on CUDA only: the library call, in its own process
         with open(root / "log.txt", "a") as log:
             subprocess.run([sys.executable, "-c", "import sys; from pig.avatar.parallel_fit import fit_parallel; "
-                            "fit_parallel(sys.argv[1], sys.argv[2], sys.argv[3], 'pig', int(sys.argv[4]), 'cpu', "
-                            "progress_s=60.0)", str(capture), str(root / "fit"), str(preset), str(processes)],
+                            "fit_parallel(sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[5], int(sys.argv[4]), 'cpu', "
+                            "progress_s=60.0)", str(capture), str(root / "fit"), str(preset), str(processes), variant],
                            check=True, stdout=log, stderr=log)
     else:
-        stage("pig.stages.fit", "--capture", str(capture), "--output", str(root / "fit"), "--threads", str(threads))
-    row = {"name": name, "seed": seed, "fit_s": time.perf_counter() - started}
+        stage("pig.stages.fit", "--capture", str(capture), "--output", str(root / "fit"), "--threads", str(threads),
+              "--variant", variant)
+    row = {"name": name, "seed": seed, "variant": variant, "fit_s": time.perf_counter() - started}
     for split in ("novel_view", "novel_pose"):
         renders = root / "renders" / split
         stage("pig.stages.render", "--checkpoint", str(root / "fit" / "avatar.pt"), "--capture", str(capture),
@@ -88,7 +104,9 @@ def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path,
               "--lod", str(levels[-1]), "--output", str(root / "metrics"))
         row[split] = json.loads((root / "metrics" / f"{split}_lod{levels[-1]}.json").read_text())["psnr"]
     with open(root / "fit" / "train_log.csv", newline="") as file:
-        last = list(csv.DictReader(file))[-1]
+        log = list(csv.DictReader(file))
+    last = log[-1]
+    row["probes"] = " ".join(f"{r['iteration']}: {float(r['probe_psnr']):.2f}" for r in log if r.get("probe_psnr"))
     # The fit's own last held-out evaluation; with a weight average also its iterate's (the same trajectory).
     row["heldout"] = float(last["heldout_psnr"])
     row["heldout_iterate"] = float(last["heldout_psnr_iterate"] or last["heldout_psnr"])
@@ -103,6 +121,7 @@ def step_cost(capture: Path, candidates: list[tuple[str, dict]], steps: int, thr
 
     from pig.avatar.training import fit
 
+    variants = load_preset(base)["variants"]
     times: dict[str, list[float]] = {name: [] for name, _ in candidates}
     for _ in range(repeats):
         for name, overrides in candidates:
@@ -119,7 +138,7 @@ def step_cost(capture: Path, candidates: list[tuple[str, dict]], steps: int, thr
                     if ops is not None:  # the timed steps under the profiler (which slows them a little)
                         ops.start() if i == 10 else ops.stop()
 
-            fit(capture, out, str(preset), threads=threads, on_iteration=tick)
+            fit(capture, out, str(preset), variant=method_variant(name, variants), threads=threads, on_iteration=tick)
             times[name].append((marks[steps] - marks[10]) / (steps - 10))
             if ops is not None:
                 print(f"\nOperators by CPU time, {name}, steps 10..{steps}:\n"
@@ -196,6 +215,10 @@ def main(argv: list[str] | None = None) -> int:
         mine = [r for r in rows if r["name"] == name]
         print(f"| {name} | {len(mine)} | {statistics.mean(r['novel_view'] for r in mine):.2f} | "
               f"{statistics.mean(r['novel_pose'] for r in mine):.2f} |")
+    print("\n| candidate | seed | variant | overrides | probe PSNR by iteration |\n|---|---|---|---|---|")
+    for (name, overrides), row in zip([(n, o) for n, o in candidates for _ in args.seeds], rows):
+        over = ", ".join(f"{s}.{k}={v}" for s, kv in overrides.items() for k, v in kv.items()) or "-"
+        print(f"| {name} | {row['seed']} | {row['variant']} | {over} | {row['probes']} |")
     return 0
 
 

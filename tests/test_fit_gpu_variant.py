@@ -18,3 +18,18 @@ def test_values_are_yaml_and_a_list_keeps_its_commas():
 def test_a_name_alone_overrides_nothing():
     assert parse_variant("pig:") == ("pig", {})
     assert parse_variant("pig") == ("pig", {})
+
+
+def test_cpu_default_candidate_names_pick_the_presets_method_variant():
+    """benchmarks/cpu_default.py fits a candidate as the longest `_`-bounded prefix of its name that is a variant."""
+    from cpu_default import method_variant
+
+    from pig.config import load_preset
+
+    variants = load_preset("cpu-demo")["variants"]
+    assert method_variant("no_precond_eps", variants) == "no_precond"
+    assert method_variant("no_precond", variants) == "no_precond"
+    assert method_variant("noise_0.1_b", variants) == "noise_0.1"
+    assert method_variant("pig_uniform", variants) == "pig"
+    assert method_variant("lod_1of1", variants) == "lod_1of1"
+    assert method_variant("default", variants) == method_variant("no", variants) == "pig"
