@@ -48,10 +48,14 @@ def open_item(browser, category: str, label: str, filename: str) -> None:
     browser.wait_for(click_eye, timeout_s=10)
     browser.wait_for(f"(() => {{ const f = document.querySelector('iframe'); return f !== null && "
                      f"f.src.includes({json.dumps(f'filename={filename};')}); }})()", timeout_s=10)
+    # The frame's document must be the item's own: until its navigation commits, the frame still holds the item
+    # shown before, complete too (the race that once made the preview's video read as missing).
+    loaded = (f"document.URL.includes({json.dumps(f'filename={filename};')}) && document.readyState === 'complete' "
+              "&& document.body !== null")
     end = time.monotonic() + 10
     while time.monotonic() < end:
         try:
-            if browser.evaluate_in_frame("document.readyState === 'complete' && document.body !== null"):
+            if browser.evaluate_in_frame(loaded):
                 return
         except RuntimeError:  # the frame is not there yet
             pass
