@@ -31,6 +31,7 @@ from torch.multiprocessing import start_processes
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fit_gpu import PhaseTimer  # noqa: E402
+from precond_adam_power import small_capture  # noqa: E402
 
 # The compiling switches of the `paper` preset, on the test preset (LPIPS on random weights: nothing downloaded).
 COMPILED_FIT = dict(timesteps=3, views=2, eval_every=10**6, checkpoint_minutes=10**6, log_every=1, precision="bf16",
@@ -42,18 +43,12 @@ RECOMPILES_LOG = "torch._dynamo.guards.__recompiles"
 
 
 def make_capture(root: Path) -> Path:
-    """The small synthetic capture of the tests (tests/conftest.py's small_capture), made once under `root`."""
-    from pig.data.synthetic import SyntheticConfig, generate_capture
-    from pig.stages.preprocess import main as preprocess
-
+    """The tests' small capture (precond_adam_power.small_capture), made once under `root`."""
     out = root / "capture"
     if not (out / "split.json").exists():
         shutil.rmtree(root / "raw", ignore_errors=True)
         shutil.rmtree(out, ignore_errors=True)
-        raw = generate_capture(root / "raw", SyntheticConfig(cameras=5, frames=4, width=48, height=48, workers=1),
-                               progress=False)
-        preprocess(["--input", str(raw), "--output", str(out), "--preset", "test", "--format", "thuman4",
-                    "--body-model", str(raw / "body_model.npz"), "--no-progress"])
+        small_capture(root)
     return out
 
 

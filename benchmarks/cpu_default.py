@@ -216,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {name} | {len(mine)} | {statistics.mean(r['novel_view'] for r in mine):.2f} | "
               f"{statistics.mean(r['novel_pose'] for r in mine):.2f} |")
     print("\n| candidate | seed | variant | overrides | probe PSNR by iteration |\n|---|---|---|---|---|")
-    for (name, overrides), row in zip([(n, o) for n, o in candidates for _ in args.seeds], rows):
+    for (name, overrides, _), row in zip(runs, rows):
         over = ", ".join(f"{s}.{k}={v}" for s, kv in overrides.items() for k, v in kv.items()) or "-"
         print(f"| {name} | {row['seed']} | {row['variant']} | {over} | {row['probes']} |")
     return 0

@@ -133,17 +133,18 @@ def table(fits: list[dict]) -> str:
         cells = [cell([metric(f, split, key) for f in group], decimals) for _, split, key, decimals in METRICS]
         iterations = "/".join(str(f["iterations"]) for f in group)
         lines.append(f"| {seed} | {budget / 60:g} min | {variant} | {len(group)} | {iterations} | " + " | ".join(cells) + " |")
+    ordered = sorted(fits, key=lambda f: (f["seed"], f["budget_s"], f["variant"], f["replicate"]))
     lines += ["", "Held-out novel-view PSNR read off the curves (curve: linear between the evaluations around the time)", "",
               "| seed | budget | variant | fit | " + " | ".join(f"{m} min (curve)" for m in CURVE_MINUTES) + " |",
               "|---|---|---|---|" + "---|" * len(CURVE_MINUTES)]
-    for fit in sorted(fits, key=lambda f: (f["seed"], f["budget_s"], f["variant"], f["replicate"])):
+    for fit in ordered:
         values = [read_off(fit["curve"], 60 * m) for m in CURVE_MINUTES]
         lines.append(f"| {fit['seed']} | {fit['budget_s'] / 60:g} min | {fit['variant']} | {fit['replicate']} | "
                      + " | ".join("-" if math.isnan(v) else f"{v:.2f}" for v in values) + " |")
     lines += ["", f"Wobble of the held-out novel-view PSNR from {WOBBLE_FROM:.0%} of the training seconds on", "",
               "| seed | budget | variant | fit | evaluations | mean dB | sd dB | mean abs dip dB | final dB |",
               "|---|---|---|---|---|---|---|---|---|"]
-    for fit in sorted(fits, key=lambda f: (f["seed"], f["budget_s"], f["variant"], f["replicate"])):
+    for fit in ordered:
         count, mean, sd, dip = wobble(fit["curve"])
         final = fit["curve"][-1][1] if fit["curve"] else math.nan
         lines.append(f"| {fit['seed']} | {fit['budget_s'] / 60:g} min | {fit['variant']} | {fit['replicate']} | "
