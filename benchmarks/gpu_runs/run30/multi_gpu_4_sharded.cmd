@@ -1,0 +1,1 @@
+NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1 timeout 470 python3 benchmarks/fit_multi_gpu.py --workdir /tmp/mg --gpus 4 --shard-solves on --iterations 120 --warmup 40 --profile-phases 10
