@@ -10,7 +10,9 @@ final evaluation) is listed with `log` and `text` instead: its curve from the tr
 the evaluate lines it printed, and "-" for a split it did not reach. `--plot` draws error against training time,
 one panel per metric, both subjects. Last, how much each curve wobbles over its last 60 % of training seconds (a
 fit's final value is one draw from that wobble): the evaluations' mean, sd and mean |dip| (each inner evaluation
-against the mean of its two neighbours):
+against the mean of its two neighbours). A fit with a lever (extra overrides) carries a `label` in the manifest, which
+names it in place of its variant. A fit with a weight average (fit.average_decay) also logs, at each evaluation after
+the average started, the held-out PSNR of the iterate it averages: the last table pairs the two, within the fit:
 
     python benchmarks/equal_time.py --plot docs/equal_time.png
 """
@@ -50,8 +52,17 @@ REGION_LINE = re.compile(
 def load_fits(manifest: Path) -> list[dict]:
     """The manifest's fits, each with its final metrics, iterations, ms/it and held-out curve [(train s, dB)]."""
     entries = yaml.safe_load(manifest.read_text())["fits"]
-    return [fit_from_json(manifest.parent, entry) if "json" in entry else fit_from_log(manifest.parent, entry)
+    fits = [fit_from_json(manifest.parent, entry) if "json" in entry else fit_from_log(manifest.parent, entry)
             for entry in entries]
+    return [{**fit, "variant": fit.get("label", fit["variant"])} for fit in fits]
+
+
+def averaged_pairs(root: Path, entry: dict) -> list[tuple[float, float, float]]:
+    """[(train s, held-out PSNR of the average, of its iterate)] at the evaluations where the fit logged both."""
+    with open(root / entry["log"], newline="") as file:
+        rows = list(csv.DictReader(file))
+    return [(float(r["train_s"]), float(r["heldout_psnr"]), float(r["heldout_psnr_iterate"]))
+            for r in rows if r.get("heldout_psnr_iterate") and r["heldout_psnr"]]
 
 
 def fit_from_json(root: Path, entry: dict) -> dict:
@@ -121,6 +132,24 @@ def cell(values: list, decimals: int) -> str:
         text += f" ± {(max(known) - min(known)) / 2:.{decimals}f}"
     # A fit whose split never came back (device time ran out) leaves the others' mean, said as such.
     return text + (f" ({len(known)} of {len(values)})" if len(known) < len(values) else "")
+
+
+def averaged_table(root: Path, fits: list[dict]) -> str:
+    """Each averaged fit's held-out PSNR, average against iterate at the same evaluations (empty: none averaged)."""
+    lines = []
+    for fit in fits:
+        pairs = averaged_pairs(root, fit) if "log" in fit else []
+        if not pairs:
+            continue
+        gains = [average - iterate for _, average, iterate in pairs]
+        lines.append(f"| {fit['seed']} | {fit['budget_s'] / 60:g} min | {fit['variant']} | {fit['replicate']} | "
+                     + ", ".join(f"{t:.0f}: {a:.2f} / {i:.2f}" for t, a, i in pairs)
+                     + f" | {np.mean(gains):+.2f} ({min(gains):+.2f} to {max(gains):+.2f}) |")
+    if not lines:
+        return ""
+    return "\n".join(["", "Weight average against its own iterate, held-out novel-view PSNR at the same evaluations", "",
+                      "| seed | budget | fit | # | train s: average / iterate dB | average - iterate dB: mean (range) |",
+                      "|---|---|---|---|---|---|"] + lines)
 
 
 def table(fits: list[dict]) -> str:
@@ -208,6 +237,7 @@ def main(argv=None) -> int:
               + f"{fit['train_s']:.0f} training s, "
               f"{fit['compile_s']:.0f} s of compilation left out", end="")
     print()
+    print(averaged_table(args.manifest.parent, fits))
     if args.plot is not None:
         plot(fits, args.plot)
     return 0

@@ -1,13 +1,16 @@
 """benchmarks/equal_time.py: a fit read from its train log and printed lines agrees with the same fit's JSON."""
 import copy
+import csv
 import math
 import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from equal_time import SUMMARY_KEYS, fit_from_json, fit_from_log, printed_metrics, table, wobble  # noqa: E402
+from equal_time import (SUMMARY_KEYS, averaged_pairs, averaged_table, fit_from_json, fit_from_log, load_fits,  # noqa: E402
+                        printed_metrics, table, wobble)
 
 RUNS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_runs"
 # run27's no_precond came back whole: its JSON is the reference for what the printed lines and log give.
@@ -66,3 +69,32 @@ def test_wobble_reads_the_late_curve_and_measures_each_dip_against_its_neighbour
     assert wobble([(0.0, 20.0), (4.0, 30.0), (6.0, 32.0), (8.0, 30.0), (10.0, 32.0)]) == (4, 31.0, 1.0, 2.0)
     count, mean, sd, dip = wobble([(0.0, 20.0), (9.0, 30.0), (10.0, 31.0)])
     assert count == 2 and all(math.isnan(v) for v in (mean, sd, dip))
+
+
+AVERAGED = {"json": "run30/pig_3.json", "log": "run30/pig_3_train_log.csv", "seed": 0, "budget_s": 300, "replicate": 1,
+            "hold": "run30", "device": "H200", "label": "pig average 0.99", "overrides": "fit.average_decay=0.99"}
+PLAIN = {**AVERAGED, "json": "run30/pig_0.json", "log": "run30/pig_0_train_log.csv"}
+del PLAIN["label"], PLAIN["overrides"]
+
+
+def test_a_labelled_fit_is_its_own_row_beside_its_variant(tmp_path):
+    manifest = tmp_path / "equal_time.yaml"
+    manifest.write_text(yaml.safe_dump({"fits": [PLAIN, AVERAGED]}))
+    (tmp_path / "run30").symlink_to(RUNS / "run30")
+    fits = load_fits(manifest)
+    assert [f["variant"] for f in fits] == ["pig", "pig average 0.99"]
+    first = table(fits).split("\n\n")[0]  # the per-variant table; the curve and wobble tables list each fit anyway
+    rows = [line for line in first.splitlines() if line.startswith("| 0 | 5 min | pig")]
+    assert [row.split(" | ")[2:4] for row in rows] == [["pig", "1"], ["pig average 0.99", "1"]]
+
+
+def test_the_average_is_paired_with_its_iterate_at_the_same_evaluations():
+    with open(RUNS / AVERAGED["log"], newline="") as file:
+        logged = [r for r in csv.DictReader(file) if r["heldout_psnr_iterate"]]
+    pairs = averaged_pairs(RUNS, AVERAGED)
+    assert [t for t, _, _ in pairs] == [float(r["train_s"]) for r in logged] and len(pairs) >= 3
+    gains = [float(r["heldout_psnr"]) - float(r["heldout_psnr_iterate"]) for r in logged]
+    [row] = [line for line in averaged_table(RUNS, [{**AVERAGED, "variant": AVERAGED["label"]}]).splitlines()
+             if line.startswith("| 0 |")]
+    assert row.rstrip(" |").endswith(f"{sum(gains) / len(gains):+.2f} ({min(gains):+.2f} to {max(gains):+.2f})")
+    assert averaged_table(RUNS, [{**PLAIN, "variant": "pig"}]) == ""  # no average, no table
