@@ -149,7 +149,7 @@ def _no_bytes() -> int:
 
 def _cpu_probe_hooks(folder: str, rank: int):
     """The benchmark's hooks of a rank (fit_multi_gpu.rank_hooks) on the CPU: 1 warm-up iteration, 2 timed, 1 timed
-    per phase, 2 under the profiler."""
+    per phase, 2 under the profiler (iterations 5 and 6; the 7th ends the fit with its evaluation)."""
     from pig.avatar.parallel_fit import RankHooks
 
     probe = fit_multi_gpu.RankProbe(folder, 1, 3, 1, rank, kernels=2, synchronize=_no_sync, peak_bytes=_no_bytes)
@@ -166,7 +166,7 @@ def test_rank_records_of_a_profiled_data_parallel_fit(small_capture, tmp_path, c
 
     run = tmp_path / "work" / "scaling_2gpu"
     run.mkdir(parents=True)
-    preset = write_test_preset(tmp_path, iterations=6, eval_every=10**6)
+    preset = write_test_preset(tmp_path, iterations=7, eval_every=10**6)
     fit_parallel(small_capture, run / "fit", preset, "pig", 2, "cpu", progress_s=1e6, timeout_s=120,
                  rank_hooks=functools.partial(_cpu_probe_hooks, str(run)))
     records = [json.loads((run / f"rank{rank}.json").read_text()) for rank in range(2)]
