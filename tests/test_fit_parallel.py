@@ -25,7 +25,7 @@ from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.config import AvatarConfig
 from pig.avatar.distributed import (GradientReducer, Parallel, ShardedSampler, SolveShards, shard_loss, shard_picks,
                                     solve_costs, solve_owners, split_pairs)
-from pig.avatar.parallel_fit import RankHooks, fit_parallel
+from pig.avatar.parallel_fit import RankHooks, fit_parallel, rank_threads
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.losses import lpips_term
 from pig.avatar.training import LossTerms, fit, iteration_loss
@@ -386,6 +386,38 @@ def test_ranks_end_with_the_process_that_started_them(small_capture, tmp_path):
         for p in pids:  # what this test started, should it have outlived the test
             if p.exists() and _running(int(p.read_text())):
                 os.kill(int(p.read_text()), signal.SIGKILL)
+
+
+class _ThreadCount:
+    """Writes this rank's torch intra-op threads to `folder`/threads{rank} after its first iteration."""
+
+    def __init__(self, folder: str, rank: int):
+        self.path = Path(folder) / f"threads{rank}"
+
+    def __call__(self, iteration: int) -> None:
+        if not self.path.exists():
+            self.path.write_text(str(torch.get_num_threads()))
+
+
+def _thread_hooks(folder: str, rank: int) -> RankHooks:
+    return RankHooks(on_iteration=_ThreadCount(folder, rank))
+
+
+def test_each_rank_takes_its_share_of_the_cores(small_capture, tmp_path, monkeypatch):
+    # Torch's default, a thread per core in each rank, oversubscribes a host N-fold: each rank takes the host's
+    # cores divided by the ranks (at least 1), or those of `cores` (pig fit --gpus N --threads T: the job's).
+    assert [rank_threads(4, 64), rank_threads(3, 64), rank_threads(8, 4)] == [16, 21, 1]
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)  # which torch would read, and the default leaves alone
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    for name, given, expected in (("default", None, max(1, cores // WORLD)), ("given", 6, 3)):
+        folder = tmp_path / name
+        folder.mkdir()
+        preset = write_test_preset(folder, iterations=1, eval_every=10**6, cpu_threads=0)  # the preset's setting: none
+        fit_parallel(small_capture, folder / "out", preset, "pig", WORLD, "cpu", progress_s=1e6, timeout_s=120,
+                     rank_hooks=functools.partial(_thread_hooks, str(folder)), cores=given)
+        assert [int((folder / f"threads{rank}").read_text()) for rank in range(WORLD)] == [expected] * WORLD, name
+    with pytest.raises(ValueError, match="cores must be at least 1"):
+        fit_parallel(small_capture, tmp_path / "none", preset, "pig", WORLD, "cpu", cores=0)
 
 
 def test_fit_stage_gpus_option(small_capture, tmp_path, capsys):

@@ -127,6 +127,11 @@ class GradientReducer:
         self._hooks = [p.register_post_accumulate_grad_hook(self._ready) for p in params]
         self._reset()
 
+    @property
+    def bucket_bytes(self) -> list[int]:
+        """The bytes each bucket all-reduces per step, in launch order."""
+        return [sum(p.numel() * p.element_size() for p in bucket) for bucket in self.buckets]
+
     def _reset(self) -> None:
         self._waiting = [len(bucket) for bucket in self.buckets]
         self._launched: list[tuple[torch.Tensor, dist.Work]] = []
@@ -253,13 +258,14 @@ class SilentProgress:
 @dataclass
 class Parallel:
     """This process's place in a data-parallel fit: its rank among `world`, its device, the host-side group that
-    carries rank 0's decisions, and the clock it reads."""
+    carries rank 0's decisions, the clock it reads, and who is told of its gradient all-reduce (`on_reducer`)."""
 
     rank: int
     world: int
     device: torch.device
     control: object  # a gloo process group (the default group where that is gloo)
     clock: Callable[[], float] = time.perf_counter
+    on_reducer: Callable[[GradientReducer], None] | None = None  # told of the gradient all-reduce (a benchmark's hook)
     _reducer: GradientReducer | None = field(default=None, repr=False)
 
     @property
@@ -301,6 +307,8 @@ class Parallel:
         """Install the gradient all-reduce on `model`'s parameters (once); `finish` it after each backward."""
         if self._reducer is None:
             self._reducer = GradientReducer(list(model.parameters()))
+            if self.on_reducer is not None:
+                self.on_reducer(self._reducer)
         return self._reducer
 
     def check_replicas(self, model: torch.nn.Module, when: str) -> None:

@@ -16,7 +16,7 @@ import torch
 import torch.distributed as dist
 from torch.multiprocessing import ProcessExitedException, ProcessRaisedException, start_processes
 
-from pig.avatar.distributed import Parallel
+from pig.avatar.distributed import GradientReducer, Parallel
 from pig.avatar.fit_progress import TENSORBOARD_DIR
 from pig.avatar.training import OUTPUT_FILES, fit_rank
 from pig.progress import LOG_INTERVAL_S
@@ -29,22 +29,41 @@ DEFAULT_TIMEOUT_S = 1800.0  # a collective that waits longer fails (a rank died 
 @dataclass
 class RankHooks:
     """What a caller (a test, a benchmark) gives each rank of a data-parallel fit: the clock the rank reads (rank
-    0's decides), a callback after each iteration and a phase timer (as pig.avatar.training.fit takes them)."""
+    0's decides), a callback after each iteration and a phase timer (as pig.avatar.training.fit takes them), and
+    one told of the rank's gradient all-reduce (pig.avatar.distributed.GradientReducer) when it is made."""
 
     clock: Callable[[], float] = time.perf_counter
     on_iteration: Callable[[int], None] | None = None
     phase: Callable[[str], object] | None = None
+    on_reducer: Callable[[GradientReducer], None] | None = None
+
+
+def host_cores() -> int:
+    """The cores this process may run on (its CPU affinity, where the platform tells it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def rank_threads(processes: int, cores: int) -> int:
+    """Each rank's torch intra-op threads: the fit's `cores` shared out, at least 1. Torch's own default is a thread
+    per core in every process, which `processes` ranks on one host oversubscribe `processes`-fold (torchrun sets 1
+    thread for the same reason): each rank's host-side work (kernel launches, autograd, the view loader's staging)
+    then competes for the cores with the other ranks' OpenMP threads."""
+    return max(1, cores // processes)
 
 
 def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, processes: int, device_type: str,
                  overwrite: bool = False, progress_s: float | None = None, tensorboard: bool = False,
-                 rank_hooks: Callable[[int], RankHooks] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S) -> Path:
+                 rank_hooks: Callable[[int], RankHooks] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S,
+                 cores: int | None = None) -> Path:
     """Fit one avatar with `processes` processes, on as many CUDA devices (`device_type` "cuda": cuda:0..N-1 of
     those visible, NCCL) or on the CPU ("cpu": gloo); returns the path of avatar.pt, which rank 0 writes.
 
     The processes are started here (spawned) and meet through a store that this process serves on the loopback
     interface; the first that fails stops the others, and its error is raised here. `rank_hooks(rank)` gives a rank
-    its clock and callbacks (tests, benchmarks); `timeout_s` bounds a collective's wait."""
+    its clock and callbacks (tests, benchmarks); `timeout_s` bounds a collective's wait. `cores`: the CPU threads the
+    fit may use, shared out among the ranks as their torch intra-op threads (`rank_threads`; default: the cores this
+    process may run on, unless OMP_NUM_THREADS is set, which torch then reads in each rank; on the CPU the preset's
+    fit.cpu_threads where set, as in a one-process CPU fit)."""
     if processes < 2:
         raise ValueError(f"fit_parallel: expected 2 or more processes, found {processes}")
     if device_type == "cuda":
@@ -54,6 +73,8 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
                              f"(CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES', 'unset')!r})")
     elif device_type != "cpu":
         raise ValueError(f"fit_parallel: device type must be 'cuda' or 'cpu', found {device_type!r}")
+    if cores is not None and cores < 1:
+        raise ValueError(f"fit_parallel: cores must be at least 1, found {cores}")
     output_dir, capture_dir = Path(output_dir), Path(capture_dir)
     with output_lock(output_dir, "fit"):
         # Refused here, before any process starts; rank 0 then writes these.
@@ -61,7 +82,9 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
         store = dist.TCPStore("127.0.0.1", 0, processes, is_master=True, timeout=timedelta(seconds=timeout_s),
                               wait_for_workers=False)
         args = (store.port, processes, device_type, str(capture_dir), str(output_dir), preset_name, variant,
-                LOG_INTERVAL_S if progress_s is None else progress_s, tensorboard, rank_hooks, timeout_s)
+                LOG_INTERVAL_S if progress_s is None else progress_s, tensorboard, rank_hooks, timeout_s,
+                None if cores is None and "OMP_NUM_THREADS" in os.environ
+                else rank_threads(processes, cores or host_cores()))
         try:
             start_processes(_rank_main, args=args, nprocs=processes, join=True, start_method="spawn")
         except (ProcessRaisedException, ProcessExitedException) as err:
@@ -77,8 +100,12 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
 
 
 def _rank_main(rank: int, port: int, world: int, device_type: str, capture_dir: str, output_dir: str, preset_name: str,
-               variant: str, progress_s: float, tensorboard: bool, rank_hooks, timeout_s: float) -> None:
-    """One rank of fit_parallel: joins the group, fits, leaves."""
+               variant: str, progress_s: float, tensorboard: bool, rank_hooks, timeout_s: float,
+               threads: int | None) -> None:
+    """One rank of fit_parallel: joins the group, fits (`threads` intra-op threads where given; on the CPU the
+    preset's fit.cpu_threads replaces them where set), leaves."""
+    if threads is not None:
+        torch.set_num_threads(threads)
     timeout = timedelta(seconds=timeout_s)
     store = dist.TCPStore("127.0.0.1", port, world, is_master=False, timeout=timeout)
     if device_type == "cuda":
@@ -91,7 +118,7 @@ def _rank_main(rank: int, port: int, world: int, device_type: str, capture_dir: 
         dist.init_process_group("gloo", store=store, rank=rank, world_size=world, timeout=timeout)
         control = dist.group.WORLD
     hooks = rank_hooks(rank) if rank_hooks is not None else RankHooks()
-    parallel = Parallel(rank, world, device, control, hooks.clock)
+    parallel = Parallel(rank, world, device, control, hooks.clock, hooks.on_reducer)
     try:
         fit_rank(Path(capture_dir), Path(output_dir), preset_name, variant, parallel, hooks.on_iteration, hooks.phase,
                  progress_s, tensorboard)

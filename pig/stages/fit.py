@@ -29,7 +29,8 @@ def main(argv: list[str] | None = None) -> int:
                              "the fit rule's gpu resource)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads of a CPU fit (default: the preset's fit.cpu_threads; the workflow passes "
-                             "the rule's threads)")
+                             "the rule's threads); with --gpus N, the threads its N processes share out (default: the "
+                             "cores this process may run on)")
     parser.add_argument("--progress-seconds", type=float, default=LOG_INTERVAL_S, metavar="SECONDS",
                         help="seconds between progress lines (iteration, loss, held-out PSNR, time left) on stderr "
                              f"(default: {LOG_INTERVAL_S:g}; --quiet: none)")
@@ -49,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.device not in ("auto", "cuda"):
             parser.error(f"--gpus {args.gpus} fits on cuda:0..{args.gpus - 1}; --device {args.device} cannot go with it")
         path = fit_parallel(args.capture, args.output, args.preset, args.variant, args.gpus, "cuda", overwrite=args.overwrite,
-                            progress_s=args.progress_seconds, tensorboard=args.tensorboard)
+                            progress_s=args.progress_seconds, tensorboard=args.tensorboard, cores=args.threads)
     else:
         path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite,
                    threads=args.threads, progress_s=args.progress_seconds, tensorboard=args.tensorboard)

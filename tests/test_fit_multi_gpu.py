@@ -1,0 +1,232 @@
+"""benchmarks/fit_multi_gpu.py and benchmarks/kernel_profile.py: the kernel profile's interval arithmetic against a
+brute-force count on synthetic traces, its reading of a real (CPU) profiler trace, and `--collect` over the run
+folders found, partial ones included."""
+import functools
+import json
+import os
+import random
+import shutil
+import sys
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from kernel_profile import (ITERATION, Row, Trace, bus_bandwidth_gbs, clip, split_trace, summarise,  # noqa: E402
+                            trace_rows, union_length)
+
+with mock.patch.dict(os.environ):  # the benchmark sets NCCL's variables for its own processes, not this one's
+    import fit_multi_gpu  # noqa: E402
+
+SPAN = 300  # synthetic traces live on the integer grid [0, SPAN) ns
+
+
+def _cells(intervals, lo=0, hi=SPAN) -> np.ndarray:
+    """Brute force: the grid's unit cells [t, t + 1) that some interval covers, within [lo, hi)."""
+    covered = np.zeros(SPAN, dtype=bool)
+    for start, end in intervals:
+        covered[max(start, lo):min(end, hi)] = True
+    covered[:lo] = covered[hi:] = False
+    return covered
+
+
+def _intervals(rng: random.Random, count: int, longest: int = 40) -> list[tuple[int, int]]:
+    out = []
+    for _ in range(count):
+        start = rng.randrange(SPAN)
+        out.append((start, min(SPAN, start + rng.randrange(0, longest))))  # some empty
+    return out
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_union_and_clip_against_cell_count(seed):
+    rng = random.Random(seed)
+    intervals = _intervals(rng, rng.randrange(0, 30))
+    assert union_length(intervals) == _cells(intervals).sum()
+    lo, hi = sorted(rng.sample(range(SPAN + 1), 2))
+    assert union_length(clip(intervals, lo, hi)) == _cells(intervals, lo, hi).sum()
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_summary_against_cell_count(seed):
+    rng = random.Random(seed)
+    cuts = sorted(rng.sample(range(10, SPAN - 10), rng.randrange(1, 6)))
+    windows = list(zip([5] + cuts, cuts + [SPAN - 5]))  # consecutive iterations, as the profiler's annotations
+    names = ["ncclDevKernel_AllReduce_Sum_f32_RING_LL", "ncclDevKernel_Broadcast_RING_LL", "triton_poi_fused_0",
+             "void at::native::vectorized_elementwise_kernel", "rasterize_to_pixels_fwd"]
+    kernels = [(s, e, rng.choice(names)) for s, e in _intervals(rng, rng.randrange(0, 40))]
+    host = _intervals(rng, rng.randrange(0, 30))
+    waits = _intervals(rng, rng.randrange(0, 8))
+    got = summarise(Trace(windows, kernels, host, waits), top=3)
+
+    n = len(windows)
+    expect = dict.fromkeys(["wall_ms", "gpu_busy_ms", "nccl_ms", "compute_ms", "nccl_alone_ms", "all_reduce_ms",
+                            "host_ms", "host_wait_ms", "kernels"], 0.0)
+    totals: dict[str, list] = {}
+    for lo, hi in windows:
+        busy = _cells([(s, e) for s, e, _ in kernels], lo, hi)
+        nccl = _cells([(s, e) for s, e, name in kernels if name.startswith("nccl")], lo, hi)
+        compute = _cells([(s, e) for s, e, name in kernels if not name.startswith("nccl")], lo, hi)
+        waiting = _cells(waits, lo, hi)
+        expect["wall_ms"] += hi - lo
+        expect["gpu_busy_ms"] += busy.sum()
+        expect["nccl_ms"] += nccl.sum()
+        expect["compute_ms"] += compute.sum()
+        expect["nccl_alone_ms"] += (nccl & ~compute).sum()
+        expect["all_reduce_ms"] += _cells([(s, e) for s, e, name in kernels if "AllReduce" in name], lo, hi).sum()
+        expect["host_ms"] += (_cells(host, lo, hi) & ~waiting).sum()
+        expect["host_wait_ms"] += waiting.sum()
+        for s, e, name in kernels:
+            if lo <= s < hi:
+                expect["kernels"] += 1
+                totals.setdefault(name, [0, 0])
+                totals[name][0] += e - s
+                totals[name][1] += 1
+    for key, value in expect.items():  # means per iteration; the grid's ns in ms
+        assert got[key] == pytest.approx(value / n * (1e-6 if key.endswith("_ms") else 1), abs=1e-12), key
+    assert got["iterations"] == n
+    assert got["gpu_idle"] == pytest.approx(1 - expect["gpu_busy_ms"] / expect["wall_ms"])
+    ranked = sorted(totals.items(), key=lambda item: (-item[1][0], item[0]))[:3]
+    assert got["top_kernels"] == [[name, pytest.approx(ns * 1e-6 / n), pytest.approx(k / n)]
+                                  for name, (ns, k) in ranked]
+
+
+def test_split_trace_keeps_the_steps_threads():
+    main, backward, loader = 11, 12, 13
+    rows = [Row("user_annotation", ITERATION, 0, 100, main, 1, 0),
+            Row("user_annotation", ITERATION, 100, 200, main, 2, 0),
+            Row("user_annotation", "something else", 0, 300, main, 3, 0),
+            Row("cpu_op", "aten::mul", 10, 20, main, 4, 0),
+            Row("cpu_op", "autograd::engine::evaluate_function: MulBackward0", 30, 40, backward, 5, 0),
+            Row("cpu_op", "aten::copy_", 50, 60, loader, 6, 0),  # the view loader's staging: not the step's
+            Row("cuda_runtime", "cudaStreamSynchronize", 12, 18, 99, 7, 4),  # linked to the main thread's op
+            Row("cuda_runtime", "cudaStreamSynchronize", 52, 58, 99, 8, 6),  # to the loader's
+            Row("cuda_runtime", "cudaLaunchKernel", 14, 15, 99, 9, 4),  # a launch does not wait
+            Row("kernel", "triton_poi_fused_0", 15, 25, 0, 10, 9),
+            Row("gpu_memcpy", "Memcpy HtoD", 25, 35, 0, 11, 0)]
+    trace = split_trace(rows)
+    assert trace.windows == [(0, 100), (100, 200)]
+    assert sorted(trace.host_ops) == [(10, 20), (30, 40)]
+    assert trace.waits == [(12, 18)]
+    assert trace.kernels == [(15, 25, "triton_poi_fused_0")]
+
+
+def test_a_real_cpu_trace_reads_as_its_iterations():
+    # The profiler's own rows (trace_rows) of 3 annotated iterations of a forward and backward on the CPU: three
+    # windows, the operators inside them (autograd's among them), no kernel.
+    weight = torch.randn(64, 64, requires_grad=True)
+    profiler = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+    profiler.start()
+    for _ in range(3):
+        with torch.profiler.record_function(ITERATION):
+            (weight @ weight).square().sum().backward()
+    profiler.stop()
+    rows = trace_rows(profiler)
+    trace = split_trace(rows)
+    summary = summarise(trace)
+    assert len(trace.windows) == 3 and not trace.kernels
+    assert any(name.startswith("autograd::engine") for name in (r.name for r in rows if r.activity == "cpu_op"))
+    assert 0 < summary["host_ms"] <= summary["wall_ms"]
+    assert summary["gpu_busy_ms"] == 0 and summary["kernels"] == 0 and summary["gpu_idle"] == 1
+
+
+def test_bus_bandwidth_is_nccl_tests_definition():
+    # 1 GB all-reduced in 10 ms on 4 ranks: 100 GB/s algorithm bandwidth, x 2 (4 - 1) / 4 on the bus.
+    assert bus_bandwidth_gbs(1e9, 10.0, 4) == pytest.approx(150.0)
+    assert bus_bandwidth_gbs(1e9, 10.0, 1) == 0.0
+
+
+def _no_sync() -> None:
+    pass
+
+
+def _no_bytes() -> int:
+    return 0
+
+
+def _cpu_probe_hooks(folder: str, rank: int):
+    """The benchmark's hooks of a rank (fit_multi_gpu.rank_hooks) on the CPU: 1 warm-up iteration, 2 timed, 1 timed
+    per phase, 2 under the profiler (iterations 5 and 6; the 7th ends the fit with its evaluation)."""
+    from pig.avatar.parallel_fit import RankHooks
+
+    probe = fit_multi_gpu.RankProbe(folder, 1, 3, 1, rank, kernels=2, synchronize=_no_sync, peak_bytes=_no_bytes)
+    return RankHooks(on_iteration=probe, phase=probe.phase, on_reducer=probe.reducer)
+
+
+def test_rank_records_of_a_profiled_data_parallel_fit(small_capture, tmp_path, capsys):
+    # The benchmark's rank hooks in a 2-process gloo fit: each rank's record holds its kernel profile (2 iterations,
+    # no kernel on the CPU, the host's operators inside the wall time) and the gradient all-reduce's buckets, the
+    # same on both ranks and holding every trainable parameter; `--collect` prints them.
+    from pig.avatar.checkpoint import load_avatar
+    from pig.avatar.parallel_fit import fit_parallel
+    from preset_files import write_test_preset
+
+    run = tmp_path / "work" / "scaling_2gpu"
+    run.mkdir(parents=True)
+    preset = write_test_preset(tmp_path, iterations=7, eval_every=10**6)
+    fit_parallel(small_capture, run / "fit", preset, "pig", 2, "cpu", progress_s=1e6, timeout_s=120,
+                 rank_hooks=functools.partial(_cpu_probe_hooks, str(run)))
+    records = [json.loads((run / f"rank{rank}.json").read_text()) for rank in range(2)]
+    for record in records:
+        profile = record["kernels"]
+        assert profile["iterations"] == 2 and profile["kernels"] == 0 and profile["gpu_busy_ms"] == 0
+        assert 0 < profile["host_ms"] <= profile["wall_ms"]
+        assert set(record["phases_ms"]) >= {"model", "loss", "backward", "reduce", "step"}
+    assert records[0]["bucket_bytes"] == records[1]["bucket_bytes"]
+    model = load_avatar(run / "fit" / "avatar.pt")  # the avatar rebuilt: its trainable parameters' bytes
+    assert sum(records[0]["bucket_bytes"]) == sum(p.numel() * p.element_size() for p in model.parameters()
+                                                  if p.requires_grad)
+    (run / "run.json").write_text(json.dumps({"gpus": 2, "sharded": False, "name": run.name}))
+    assert fit_multi_gpu.main(["--collect", "--workdir", str(run.parent)]) == 0
+    out = capsys.readouterr().out
+    assert "| 2 GPU | 0 |" in out and "| 2 GPU | 1 |" in out
+    assert "GPU idle per rank (1 - busy / wall): 2 GPU: 100 % / 100 %" in out
+
+
+def _kernel_summary(wall: float, busy: float) -> dict:
+    return {"wall_ms": wall, "gpu_busy_ms": busy, "nccl_ms": 1.0, "compute_ms": busy - 0.5, "nccl_alone_ms": 0.5,
+            "all_reduce_ms": 0.8, "host_ms": wall - 1, "host_wait_ms": 0.2, "kernels": 1234.0, "iterations": 5,
+            "gpu_idle": 1 - busy / wall, "top_kernels": [["triton_poi_fused_0", 3.0, 10.0]]}
+
+
+def _write_run(folder: Path, gpus: int, sharded: bool, ranks: int) -> None:
+    folder.mkdir(parents=True)
+    (folder / "run.json").write_text(json.dumps({"gpus": gpus, "sharded": sharded, "name": folder.name, "fit_s": 1.0,
+                                                 "heldout_psnr": 20.0, "train_s": 1.0, "iterations": 130}))
+    for rank in range(ranks):
+        (folder / f"rank{rank}.json").write_text(json.dumps({
+            "rank": rank, "ms": 100.0 / gpus, "peak_gib": 1.0, "phases_ms": {"backward": 40.0 / gpus},
+            "graphs": [9, 0, 0], "graph_breaks": 0, "kernels": _kernel_summary(100.0 / gpus, 30.0 / gpus),
+            "bucket_bytes": None if gpus == 1 else [2**20, 3 * 2**20]}))
+
+
+def test_collect_prints_every_run_found_and_names_the_partial_ones(small_capture, tmp_path, capsys):
+    work = tmp_path / "work"
+    shutil.copytree(small_capture, work / fit_multi_gpu.CAPTURE)
+    _write_run(work / "scaling_1gpu", 1, False, 1)
+    _write_run(work / "scaling_4gpu_sharded", 4, True, 4)
+    _write_run(work / "scaling_2gpu_sharded", 2, True, 1)  # rank 1 never wrote its record
+    (work / "scaling_2gpu").mkdir()  # started, nothing written
+    assert fit_multi_gpu.main(["--collect", "--workdir", str(work), "--cameras", "99"]) == 0
+    out, err = capsys.readouterr()
+    assert "scaling_2gpu: no run.json" in err and "scaling_2gpu_sharded/rank1.json: missing" in err
+    rows = [line for line in out.splitlines() if line.startswith(("| 1 |", "| 4 |", "| 2 |"))]
+    assert [row.split("|")[1:3] for row in rows] == [[" 1 ", " one process "], [" 4 ", " sharded "]]
+    assert "| 4.00x |" in rows[1] and "| 4.0 | 2 |" in rows[1]  # speed-up; 4 MiB all-reduced in 2 buckets
+    cameras = json.loads((small_capture / "cameras.json").read_text())
+    frames = len(np.load(small_capture / "smplx.npz")["frames"])
+    assert f"capture {len(cameras)} cameras x {frames} frames" in out  # the capture on disk, not --cameras 99
+    profile = [line for line in out.splitlines() if line.startswith("| 4 GPU sharded |")]
+    assert len(profile) == 4 + 4  # the solve-phase table's rows and the kernel profile's, per rank
+    assert "GPU idle per rank (1 - busy / wall): 1 GPU: 70 %; 4 GPU sharded: 70 % / 70 % / 70 % / 70 %" in out
+
+
+def test_collect_without_any_finished_run_says_so(tmp_path, capsys):
+    (tmp_path / "scaling_1gpu").mkdir()
+    assert fit_multi_gpu.main(["--collect", "--workdir", str(tmp_path)]) == 1
+    assert "no finished scaling run" in capsys.readouterr().err
+    assert fit_multi_gpu.main(["--collect", "--workdir", str(tmp_path / "none")]) == 1
+    assert "no scaling run folder" in capsys.readouterr().err
