@@ -9,7 +9,7 @@ import sys
 import textwrap
 import time
 from collections import Counter
-from contextlib import nullcontext
+from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, replace
 from datetime import timedelta
 from pathlib import Path
@@ -19,6 +19,8 @@ import pytest
 import torch
 import torch.distributed as dist
 from torch.multiprocessing import start_processes
+from torch.overrides import TorchFunctionMode
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from pig.avatar.batches import Picks, Sampler, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
@@ -104,10 +106,10 @@ def _count_solves(model: torch.nn.Module) -> Counter:
     return counts
 
 
-def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, device: str = "cpu"):
+def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, device: str = "cpu", phase=None):
     """One iteration (0, at progress 0.5) of the preset's fit on `device`: loss terms, gradients, the weights after
     the step, the rank's share of the views and the solves it ran (with `fit.shard_solves` the owners'); through the
-    fit's functions, the model built as the fit builds it."""
+    fit's functions, the model built as the fit builds it. `phase`: the fit's phase hook (pig.avatar.training.fit)."""
     preset = load_preset(preset_path)
     fit_cfg = load_section(preset, "fit", FitConfig)
     precond = load_section(preset, "precond", PrecondConfig)
@@ -131,7 +133,7 @@ def _one_step(capture_dir: Path, preset_path: str, parallel: Parallel | None, de
         sampler = ShardedSampler(sampler, parallel.rank, parallel.world)
     with ViewSource(capture, train["frames"], device, 0, 1) as source:
         batch = TrainingBatches(source, sampler, 1, 0).get(0)
-    phase = lambda name: nullcontext()
+    phase = phase or (lambda name: nullcontext())
     if parallel is None:
         terms = iteration_loss(model, batch, loss, raster, background, True, phase)
     else:
@@ -233,6 +235,98 @@ def test_two_gloo_processes_compute_the_one_process_step(small_capture, tmp_path
         assert torch.equal(ranks[0][2][name], ranks[1][2][name]), name
         if value.is_floating_point():
             torch.testing.assert_close(ranks[0][2][name], value, rtol=1e-4, atol=1e-6, msg=name)
+
+
+class _BlockingCopies(TorchFunctionMode):
+    """Records, while active, the calls that copy host data to a GPU with a blocking copy, which waits for the
+    device's queue to drain (a host synchronisation): a tensor made from host data (torch.tensor, torch.as_tensor,
+    torch.from_numpy) on a named device, or such a tensor moved by .to, .cuda or copy_ without non_blocking=True.
+    On the CPU those copies do nothing, but the calls are those a GPU fit makes."""
+
+    MAKERS = ("tensor", "as_tensor", "from_numpy")
+
+    def __init__(self):
+        super().__init__()
+        self.host: dict[int, torch.Tensor] = {}  # made from host data, not yet copied without blocking
+        self.blocking: list[str] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        name = getattr(func, "__name__", "")
+        non_blocking = kwargs.get("non_blocking") is True or any(a is True for a in args[1:])
+        if name in self.MAKERS and args and not isinstance(args[0], torch.Tensor):
+            if kwargs.get("device") is not None:
+                self.blocking.append(f"torch.{name}(..., device=...)")
+            else:
+                self.host[id(out)] = out
+        elif name in ("to", "cuda") and args and id(args[0]) in self.host:
+            if not non_blocking:
+                self.blocking.append(f"Tensor.{name} of host data")
+            self.host.pop(id(args[0]))
+        elif name == "copy_" and len(args) > 1 and id(args[1]) in self.host and not non_blocking:
+            self.blocking.append("Tensor.copy_ of host data")
+        return out
+
+
+def test_the_step_copies_no_host_data_to_the_device_blocking(small_capture, tmp_path):
+    # The model's forward in a step, one process and a data-parallel rank: the timesteps went to the model as a host
+    # tensor that it moved to the device, and the decoders made their identity quaternion from a list on the device,
+    # each a blocking copy on a GPU, two host synchronisations a step (benchmarks/NOTES.md, "the host's share").
+    preset = write_test_preset(tmp_path, **STEP_FIT)
+    recorded = []
+
+    @contextmanager
+    def phase(name):
+        if name != "model":
+            yield
+            return
+        with _BlockingCopies() as mode:
+            yield
+        recorded.append(mode.blocking)
+
+    _one_step(small_capture, preset, None, phase=phase)
+    store = dist.TCPStore("127.0.0.1", 0, 1, is_master=True, timeout=timedelta(seconds=60))
+    dist.init_process_group("gloo", store=store, rank=0, world_size=1)
+    try:
+        _one_step(small_capture, preset, Parallel(0, 1, torch.device("cpu"), dist.group.WORLD), phase=phase)
+    finally:
+        dist.destroy_process_group()
+    assert recorded == [[], []]
+
+
+class _OpNames(TorchDispatchMode):
+    """The names of the aten ops dispatched while active."""
+
+    def __init__(self):
+        super().__init__()
+        self.names = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.names[func._schema.name.split("::")[-1]] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def test_gradient_reducer_writes_the_sums_back_in_one_copy_per_bucket():
+    # `finish` wrote each parameter's summed gradient back with a copy of its own: on a GPU a kernel launch per
+    # parameter (39 in the `paper` avatar) on every rank every step, whatever its share of the views.
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(*[torch.nn.Linear(4, 4) for _ in range(10)])
+    store = dist.TCPStore("127.0.0.1", 0, 1, is_master=True, timeout=timedelta(seconds=60))
+    dist.init_process_group("gloo", store=store, rank=0, world_size=1)
+    try:
+        reducer = GradientReducer(list(net.parameters()), bucket_mb=0.0003)  # buckets of at most 314 bytes
+        net(torch.randn(3, 4)).square().sum().backward()
+        own = [p.grad.clone() for p in net.parameters()]
+        with _OpNames() as ops:
+            reducer.finish()
+        reducer.close()
+    finally:
+        dist.destroy_process_group()
+    assert len(reducer.buckets) == 3 and len(own) == 20  # 80 bytes a layer: 7, 7 and 6 parameters
+    assert ops.names["copy_"] == 0 and ops.names["_foreach_copy_"] == 3
+    for p, grad in zip(net.parameters(), own):  # one process: the sum is its own gradient, written back
+        assert torch.equal(p.grad, grad)
 
 
 class _FakeClock:

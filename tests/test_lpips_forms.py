@@ -2,6 +2,7 @@
 `full` is the term as fits computed it before the forms existed; MMLPHuman's crop against a canvas built with numpy
 and resized with OpenCV; what each form sees of floaters; the schedule; TrainingLPIPS against the float32 reference."""
 import math
+from collections import Counter
 
 import cv2
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 import torch
 import yaml
 from torch._dynamo.utils import counters
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from pig.avatar.lpips_crop import crop_views, crop_views_sliced, mask_boxes
 from pig.avatar.losses import lpips_views
@@ -163,6 +165,43 @@ def test_views_with_an_empty_mask_are_left_out_of_the_mean():
     torch.testing.assert_close(lpips_views(net, x, y, masks, background, "mmlphuman", 32), expected, rtol=1e-12, atol=0)
     masks[:] = False
     assert lpips_views(net, x, y, masks, background, "mmlphuman", 32).item() == 0
+
+
+class _OpNames(TorchDispatchMode):
+    """The names of the aten ops dispatched while active."""
+
+    def __init__(self):
+        super().__init__()
+        self.names = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.names[func._schema.name.split("::")[-1]] += 1
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("windows", [False, True])
+def test_renders_and_targets_are_cropped_with_one_box_and_set_of_taps(windows):
+    """The `mmlphuman` term crops renders and targets by the same masks and windows: their boxes, canvas positions
+    and bilinear taps are computed once (mask_boxes' two `amin`s once, not twice: ~170 ops of the ~950 a GPU step
+    launches eagerly, benchmarks/NOTES.md), and the term and its gradient are those of two `crop_views`, bit for
+    bit."""
+    net = _alex()
+    render, target, masks = _batch(count=3)
+    masks[1, 30:40, 10:60] = True  # a box larger than the crop: the windows move
+    x, y = (t.permute(0, 3, 1, 2) for t in (render, target))
+    background = torch.tensor(BG, dtype=torch.float64)
+    offsets = torch.rand(3, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) if windows else None
+    xg = x.clone().requires_grad_(True)
+    with _OpNames() as ops:
+        term = lpips_views(net, xg, y, masks, background, "mmlphuman", 32, offsets)
+    (grad,) = torch.autograd.grad(term, xg)
+    xr = x.clone().requires_grad_(True)
+    (cx, valid), (cy, _) = (crop_views(t, masks, background, 32, offsets) for t in (xr, y))
+    weights = valid.to(torch.float64)
+    expected = (net(cx, cy) * weights).sum() / weights.sum().clamp(min=1)
+    (expected_grad,) = torch.autograd.grad(expected, xr)
+    assert torch.equal(term, expected) and torch.equal(grad, expected_grad) and grad.abs().max() > 0
+    assert ops.names["amin"] == 2 and ops.names["gather"] == 8  # one box (rows, columns); 4 taps x 2 batches
 
 
 def test_schedule_and_windows_follow_the_run():

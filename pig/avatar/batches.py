@@ -78,6 +78,13 @@ class TrainingBatch:
     wait_s: float  # how long the caller blocked for this batch
     share: ViewShare | None = None  # Picks.share
 
+    def timestep_tensor(self, device: torch.device) -> torch.Tensor:
+        """`timesteps` (K,) int64 on `device`; to a GPU from pinned memory without waiting. A tensor of the list
+        moved there (torch.tensor(...).to(device)) is a blocking copy, which waits for the device's queue to drain:
+        one host synchronisation a step."""
+        steps = torch.tensor(self.timesteps, dtype=torch.int64)
+        return (steps.pin_memory() if device.type == "cuda" else steps).to(device, non_blocking=True)
+
     def uniform(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int, int, torch.Tensor | None] | None:
         """When every timestep has one view batch of the same size and camera count: (viewmats (K, V, 4, 4),
         Ks (K, V, 3, 3), images (K V, H, W, 3), masks (K V, H, W), width, height, bands (K V, H, W) or None) for

@@ -61,6 +61,9 @@ class AnchorDecoder(nn.Module):
             self.colour = mlp(inputs, width, layers, colour_outputs, output_gain)
         self.autocast = False
         self._compiled_mlps = None  # `_run_mlps` compiled by set_precision
+        # On the module's device: a tensor made from host data in `forward` would be a blocking copy to a GPU every
+        # step, which waits for the device's queue to drain (a host synchronisation). Not in the state dict.
+        self.register_buffer("identity", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
 
     def set_precision(self, precision: str, compiled: bool = False) -> None:
         """MLPs in "float32", "tf32" (set by the caller through torch.backends) or "bf16" autocast with float32
@@ -86,8 +89,7 @@ class AnchorDecoder(nn.Module):
         offset = shape[..., 0:3] * self.offset_scale
         if not self.offsets:
             offset = torch.zeros_like(offset)
-        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=shape.dtype, device=shape.device)
-        quat = shape[..., 3:7] + identity  # residual around the identity rotation
+        quat = shape[..., 3:7] + self.identity.to(shape.dtype)  # residual around the identity rotation
         quat = quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         # Bounded log-scale: a diverging output must not make a splat vanish (0) or cover everything (inf).
         scale = torch.exp((shape[..., 7:10] + log_scale_prior).clamp(LOG_SCALE_MIN, LOG_SCALE_MAX))

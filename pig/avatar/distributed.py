@@ -152,11 +152,13 @@ class GradientReducer:
             self._launch(bucket)
         for bucket, (flat, work) in zip(self.buckets, self._launched):
             work.wait()
-            for p, part in zip(bucket, flat.split([p.numel() for p in bucket])):
+            parts = [part.view_as(p) for p, part in zip(bucket, flat.split([p.numel() for p in bucket]))]
+            held = [(p.grad, part) for p, part in zip(bucket, parts) if p.grad is not None]
+            if held:  # one multi-tensor copy, not a kernel launch per parameter
+                torch._foreach_copy_([grad for grad, _ in held], [part for _, part in held])
+            for p, part in zip(bucket, parts):
                 if p.grad is None:
-                    p.grad = part.view_as(p).clone()
-                else:
-                    p.grad.copy_(part.view_as(p))
+                    p.grad = part.clone()
         self._reset()
 
     def close(self) -> None:
@@ -343,7 +345,7 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
     image size's views in one evaluation."""
     share = batch.share
     with phase("model"):
-        g = model(torch.tensor(batch.timesteps), batch.lod)
+        g = model(batch.timestep_tensor(background.device), batch.lod)
     groups: dict[tuple[int, int, int], list[tuple[int, object]]] = {}
     for k, step_batches in enumerate(batch.views):
         for vb in step_batches:

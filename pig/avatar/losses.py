@@ -14,7 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pig.avatar.lpips_crop import crop_views, crop_views_sliced
+from pig.avatar.lpips_crop import crop_view_sets, crop_views_sliced
 from pig.metrics.lpips import LPIPS, WeightsMissing
 from pig.metrics.ssim import ssim
 
@@ -83,9 +83,11 @@ def lpips_views(lpips, x: torch.Tensor, y: torch.Tensor, masks: torch.Tensor, ba
         return distances.mean() if count is None else distances.sum() / count
     if form != "mmlphuman":
         raise ValueError(f"LPIPS form must be one of {LPIPS_FORMS}, found {form!r}")
-    crop_fn = crop_views_sliced if sliced else crop_views
-    cx, valid = crop_fn(x, masks, background, crop, offsets)
-    cy, _ = crop_fn(y, masks, background, crop, offsets)
+    if sliced:
+        cx, valid = crop_views_sliced(x, masks, background, crop, offsets)
+        cy, _ = crop_views_sliced(y, masks, background, crop, offsets)
+    else:  # one box and set of taps for both: the crop's index work once a loss evaluation (benchmarks/NOTES.md)
+        (cx, cy), valid = crop_view_sets([x, y], masks, background, crop, offsets)
     weights = valid.to(torch.float32)
     return (lpips(cx, cy) * weights).sum() / (weights.sum() if count is None else torch.as_tensor(count)).clamp(min=1)
 

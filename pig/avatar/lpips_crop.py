@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["mask_boxes", "crop_views", "crop_views_sliced"]
+__all__ = ["mask_boxes", "crop_views", "crop_view_sets", "crop_views_sliced"]
 
 
 def mask_boxes(masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -57,34 +57,46 @@ def crop_views(images: torch.Tensor, masks: torch.Tensor, background: torch.Tens
     (an empty or one-pixel mask), where MMLPHuman's crop fails: its crop is background and should not be scored.
     Differentiable with respect to `images`.
     """
-    batch, _, height, width = images.shape
+    (crops,), valid = crop_view_sets([images], masks, background, size, offsets)
+    return crops, valid
+
+
+def crop_view_sets(image_sets: list[torch.Tensor], masks: torch.Tensor, background: torch.Tensor, size: int,
+                   offsets: torch.Tensor | None = None) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """`crop_views` of each (B, 3, H, W) batch of `image_sets` (renders and their targets, of one dtype) by the same
+    masks and windows: the boxes, canvas positions and bilinear taps computed once for all, each crop the same as
+    `crop_views` of it alone."""
+    batch, _, height, width = image_sets[0].shape
     top, left, rows, cols = mask_boxes(masks)
     side = torch.maximum(rows, cols)
-    bg = background.to(images).expand(batch, 3)[:, :, None, None]
     # The canvas holds the box's pixels, centred on the shorter side, and the background elsewhere: sampling the image
     # with every pixel outside the box set to the background, and the background beyond the image, is sampling it.
-    r = torch.arange(height, device=images.device)[None, :, None]
-    c = torch.arange(width, device=images.device)[None, None, :]
+    r = torch.arange(height, device=masks.device)[None, :, None]
+    c = torch.arange(width, device=masks.device)[None, None, :]
     inside = ((r >= top[:, None, None]) & (r < (top + rows)[:, None, None]) & (c >= left[:, None, None])
               & (c < (left + cols)[:, None, None]))
-    shifted = torch.where(inside[:, None], images - bg, 0)
     v = _canvas_coordinates(side, size, None if offsets is None else offsets[:, 0])
     u = _canvas_coordinates(side, size, None if offsets is None else offsets[:, 1])
     v = v - torch.div(side - rows, 2, rounding_mode="floor")[:, None] + top[:, None]
     u = u - torch.div(side - cols, 2, rounding_mode="floor")[:, None] + left[:, None]
-    return _bilinear(shifted, v, u) + bg, side > 0
+    taps = _bilinear_taps(v, u, height, width, image_sets[0].dtype)
+    crops = []
+    for images in image_sets:
+        bg = background.to(images).expand(batch, 3)[:, :, None, None]
+        shifted = torch.where(inside[:, None], images - bg, 0)
+        crops.append(_bilinear(shifted, taps) + bg)
+    return crops, side > 0
 
 
-def _bilinear(image: torch.Tensor, v: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """(B, C, H, W) sampled bilinearly at rows `v` x columns `u` (B, S) float64 -> (B, C, S, S), 0 outside the image.
-    Gathers with weights from float64 positions, not grid_sample, whose float32 normalised coordinates miss whole
-    pixels by ~1e-4 at 1330 pixels: a window at whole-pixel offsets is then an exact copy."""
-    batch, channels, height, width = image.shape
-    size = v.shape[1]
+def _bilinear_taps(v: torch.Tensor, u: torch.Tensor, height: int, width: int, dtype: torch.dtype
+                   ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """The four taps of a bilinear sampling of (H, W) images at rows `v` x columns `u` (B, S) float64: per tap the
+    flat pixel index (B, S S) and its weight (B, 1, S, S) in `dtype`, 0 outside the image. Weights from float64
+    positions, not grid_sample, whose float32 normalised coordinates miss whole pixels by ~1e-4 at 1330 pixels: a
+    window at whole-pixel offsets is then an exact copy."""
     v0, u0 = v.floor(), u.floor()
-    fv, fu = (v - v0).to(image.dtype), (u - u0).to(image.dtype)
-    flat = image.flatten(2)
-    out = torch.zeros(batch, channels, size, size, dtype=image.dtype, device=image.device)
+    fv, fu = (v - v0).to(dtype), (u - u0).to(dtype)
+    taps = []
     for dv, wv in ((0, 1 - fv), (1, fv)):
         rows = v0.long() + dv
         wv = wv * ((rows >= 0) & (rows < height))
@@ -92,8 +104,19 @@ def _bilinear(image: torch.Tensor, v: torch.Tensor, u: torch.Tensor) -> torch.Te
             cols = u0.long() + du
             wu = wu * ((cols >= 0) & (cols < width))
             index = rows.clamp(0, height - 1)[:, :, None] * width + cols.clamp(0, width - 1)[:, None, :]
-            values = flat.gather(2, index.flatten(1)[:, None].expand(batch, channels, -1)).view(out.shape)
-            out = out + values * (wv[:, :, None] * wu[:, None, :])[:, None]
+            taps.append((index.flatten(1), (wv[:, :, None] * wu[:, None, :])[:, None]))
+    return taps
+
+
+def _bilinear(image: torch.Tensor, taps: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+    """(B, C, H, W) sampled at the bilinear `taps` of `_bilinear_taps` -> (B, C, S, S)."""
+    batch, channels = image.shape[:2]
+    size = taps[0][1].shape[-1]
+    flat = image.flatten(2)
+    out = torch.zeros(batch, channels, size, size, dtype=image.dtype, device=image.device)
+    for index, weight in taps:
+        values = flat.gather(2, index[:, None].expand(batch, channels, -1)).view(out.shape)
+        out = out + values * weight
     return out
 
 

@@ -244,7 +244,7 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
                    batched: bool, phase: Callable[[str], AbstractContextManager]) -> dict[str, torch.Tensor]:
     """Eq. 15 averaged over the views of one iteration's batch (each view weighs the same)."""
     with phase("model"):
-        g = model(torch.tensor(batch.timesteps), batch.lod)
+        g = model(batch.timestep_tensor(background.device), batch.lod)
     uniform = batch.uniform() if batched else None
     if uniform is not None:
         viewmats, Ks, images, masks, width, height, bands = uniform
