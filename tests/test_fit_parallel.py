@@ -20,7 +20,6 @@ import torch
 import torch.distributed as dist
 from torch.multiprocessing import start_processes
 from torch.overrides import TorchFunctionMode
-from torch.utils._python_dispatch import TorchDispatchMode
 
 from pig.avatar.batches import Picks, Sampler, TrainingBatches, ViewSource
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
@@ -39,6 +38,7 @@ from pig.field.latent_grid import FieldConfig
 from pig.field.lattice_solve import LatticeSystem
 from pig.field.precondition import PrecondConfig, PreconditionedTensor
 from pig.render.api import RasterizerConfig
+from op_names import OpNames
 from preset_files import write_test_preset
 
 WORLD = 2
@@ -295,18 +295,6 @@ def test_the_step_copies_no_host_data_to_the_device_blocking(small_capture, tmp_
     assert recorded == [[], []]
 
 
-class _OpNames(TorchDispatchMode):
-    """The names of the aten ops dispatched while active."""
-
-    def __init__(self):
-        super().__init__()
-        self.names = Counter()
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.names[func._schema.name.split("::")[-1]] += 1
-        return func(*args, **(kwargs or {}))
-
-
 def test_gradient_reducer_writes_the_sums_back_in_one_copy_per_bucket():
     # `finish` wrote each parameter's summed gradient back with a copy of its own: on a GPU a kernel launch per
     # parameter (39 in the `paper` avatar) on every rank every step, whatever its share of the views.
@@ -318,7 +306,7 @@ def test_gradient_reducer_writes_the_sums_back_in_one_copy_per_bucket():
         reducer = GradientReducer(list(net.parameters()), bucket_mb=0.0003)  # buckets of at most 314 bytes
         net(torch.randn(3, 4)).square().sum().backward()
         own = [p.grad.clone() for p in net.parameters()]
-        with _OpNames() as ops:
+        with OpNames() as ops:
             reducer.finish()
         reducer.close()
     finally:

@@ -2,7 +2,6 @@
 `full` is the term as fits computed it before the forms existed; MMLPHuman's crop against a canvas built with numpy
 and resized with OpenCV; what each form sees of floaters; the schedule; TrainingLPIPS against the float32 reference."""
 import math
-from collections import Counter
 
 import cv2
 import numpy as np
@@ -11,13 +10,13 @@ import pytest
 import torch
 import yaml
 from torch._dynamo.utils import counters
-from torch.utils._python_dispatch import TorchDispatchMode
 
 from pig.avatar.lpips_crop import crop_views, crop_views_sliced, mask_boxes
 from pig.avatar.losses import lpips_views
 from pig.avatar.training import FitConfig, LossTerms
 from pig.config import ConfigError, load_preset, load_section
 from pig.metrics.lpips import LPIPS, TrainingLPIPS
+from op_names import OpNames
 
 BG = (0.2, 0.5, 0.9)
 
@@ -167,18 +166,6 @@ def test_views_with_an_empty_mask_are_left_out_of_the_mean():
     assert lpips_views(net, x, y, masks, background, "mmlphuman", 32).item() == 0
 
 
-class _OpNames(TorchDispatchMode):
-    """The names of the aten ops dispatched while active."""
-
-    def __init__(self):
-        super().__init__()
-        self.names = Counter()
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.names[func._schema.name.split("::")[-1]] += 1
-        return func(*args, **(kwargs or {}))
-
-
 @pytest.mark.parametrize("windows", [False, True])
 def test_renders_and_targets_are_cropped_with_one_box_and_set_of_taps(windows):
     """The `mmlphuman` term crops renders and targets by the same masks and windows: their boxes, canvas positions
@@ -192,7 +179,7 @@ def test_renders_and_targets_are_cropped_with_one_box_and_set_of_taps(windows):
     background = torch.tensor(BG, dtype=torch.float64)
     offsets = torch.rand(3, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) if windows else None
     xg = x.clone().requires_grad_(True)
-    with _OpNames() as ops:
+    with OpNames() as ops:
         term = lpips_views(net, xg, y, masks, background, "mmlphuman", 32, offsets)
     (grad,) = torch.autograd.grad(term, xg)
     xr = x.clone().requires_grad_(True)
