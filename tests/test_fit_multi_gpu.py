@@ -147,6 +147,18 @@ def _no_bytes() -> int:
     return 0
 
 
+def test_a_trace_that_cannot_be_read_loses_the_kernel_profile_only(tmp_path, capsys):
+    # The trace's reader uses the profiler's private event API: on a torch where it differs, the rank's record (ms/it,
+    # phases, graphs) must still be written, with no kernel profile, and the reason said.
+    probe = fit_multi_gpu.RankProbe(str(tmp_path), 1, 3, 1, 0, kernels=2, synchronize=_no_sync, peak_bytes=_no_bytes)
+    with mock.patch.object(fit_multi_gpu, "trace_rows", side_effect=AttributeError("no activity_type")):
+        for iteration in range(7):
+            probe(iteration)
+    record = json.loads((tmp_path / "rank0.json").read_text())
+    assert record["kernels"] is None and record["ms"] >= 0 and "phases_ms" in record
+    assert "kernel profile not read (AttributeError: no activity_type)" in capsys.readouterr().err
+
+
 def _cpu_probe_hooks(folder: str, rank: int):
     """The benchmark's hooks of a rank (fit_multi_gpu.rank_hooks) on the CPU: 1 warm-up iteration, 2 timed, 1 timed
     per phase, 2 under the profiler (iterations 5 and 6; the 7th ends the fit with its evaluation)."""
