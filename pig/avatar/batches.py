@@ -31,6 +31,13 @@ from pig.avatar.losses import boundary_band_host
 MASK_BIT, BAND_BIT = 1, 2  # of the staged uint8 mask
 
 
+def host_to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A small host array on `device`; to a GPU from pinned memory, so that the copy does not wait for the device's
+    queue to drain (a blocking copy is a host synchronisation)."""
+    tensor = torch.from_numpy(array)
+    return tensor.pin_memory().to(device, non_blocking=True) if device.type == "cuda" else tensor.to(device)
+
+
 @dataclass
 class ViewBatch:
     """Views of one timestep that share an image size."""
@@ -79,11 +86,9 @@ class TrainingBatch:
     share: ViewShare | None = None  # Picks.share
 
     def timestep_tensor(self, device: torch.device) -> torch.Tensor:
-        """`timesteps` (K,) int64 on `device`; to a GPU from pinned memory without waiting. A tensor of the list
-        moved there (torch.tensor(...).to(device)) is a blocking copy, which waits for the device's queue to drain:
-        one host synchronisation a step."""
-        steps = torch.tensor(self.timesteps, dtype=torch.int64)
-        return (steps.pin_memory() if device.type == "cuda" else steps).to(device, non_blocking=True)
+        """`timesteps` (K,) int64 on `device` (host_to_device: a tensor of the list moved there would be a blocking
+        copy, one host synchronisation a step)."""
+        return host_to_device(np.asarray(self.timesteps, dtype=np.int64), device)
 
     def uniform(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, int, int, torch.Tensor | None] | None:
         """When every timestep has one view batch of the same size and camera count: (viewmats (K, V, 4, 4),

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare
+from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare, host_to_device
 from pig.field.lattice_solve import LatticeSystem
 from pig.field.precondition import PreconditionedTensor
 from pig.render.api import render_timesteps
@@ -354,7 +354,7 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
     by_size: dict[tuple[int, int], list] = {}
     with phase("render"):
         for (width, height, _), members in groups.items():
-            ks = _to_device(np.array([k for k, _ in members]), g.means.device)
+            ks = host_to_device(np.array([k for k, _ in members]), g.means.device)
             out = render_timesteps(g.means[ks], g.quats[ks], g.scales[ks], g.opacities[ks], g.sh[ks],
                                    torch.stack([vb.viewmats for _, vb in members]), torch.stack([vb.Ks for _, vb in members]),
                                    width, height, background, backend=raster.backend, max_pairs=raster.max_pairs)
@@ -368,7 +368,7 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
             mine = torch.zeros((), device=background.device)
             for parts in by_size.values():
                 for positions, _, vb in parts:
-                    sees = _to_device(np.isin(positions, seen), vb.masks.device)
+                    sees = host_to_device(np.isin(positions, seen), vb.masks.device)
                     mine = mine + (vb.masks.flatten(1).any(1) & sees).sum()
             count = parallel.sum_count(mine)
         elif loss.lpips_active:
@@ -386,10 +386,3 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
             for key, value in part.items():
                 terms[key] = terms.get(key, 0) + value
     return terms
-
-
-def _to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
-    """A small host array on `device`, through pinned memory to a GPU so that the copy does not wait for the queue."""
-    tensor = torch.from_numpy(array)
-    return tensor.pin_memory().to(device, non_blocking=True) if device.type == "cuda" else tensor.to(device)
-

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from pig.avatar.averaging import WeightAverage
-from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSource
+from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSource, host_to_device
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
@@ -222,22 +222,14 @@ class LossTerms:
                     terms["lpips"] = torch.zeros((), device=render.device)
                     return terms
             if rows is not None and len(rows) < render.shape[0]:
-                pick = _to_device(rows, render.device)
+                pick = host_to_device(rows, render.device)
                 render, images, masks, band = (t[pick] for t in (render, images, masks, band))
             x, y = (apply_band(im, band, self.background).permute(0, 3, 1, 2) for im in (render, images))
-            offsets = None if offsets is None else _to_device(offsets, x.device)
+            offsets = None if offsets is None else host_to_device(offsets, x.device)
             terms["lpips"] = lpips_views(self.lpips, x, y, masks, self.background, self.cfg.lpips_form, self.cfg.lpips_crop,
                                          offsets, self.cfg.lpips_crop_sliced, count)
             terms["total"] = terms["total"] + self.cfg.weight_lpips * terms["lpips"]
         return terms
-
-
-def _to_device(array: np.ndarray, device: torch.device) -> torch.Tensor:
-    """A small host array on `device`; to a GPU from pinned memory, so that the copy does not wait for the queue."""
-    tensor = torch.from_numpy(array)
-    if device.type == "cuda":
-        return tensor.pin_memory().to(device, non_blocking=True)
-    return tensor.to(device)
 
 
 def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: RasterizerConfig, background: torch.Tensor,
