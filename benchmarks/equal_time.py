@@ -59,10 +59,8 @@ def load_fits(manifest: Path) -> list[dict]:
 
 def averaged_pairs(root: Path, entry: dict) -> list[tuple[float, float, float]]:
     """[(train s, held-out PSNR of the average, of its iterate)] at the evaluations where the fit logged both."""
-    with open(root / entry["log"], newline="") as file:
-        rows = list(csv.DictReader(file))
     return [(float(r["train_s"]), float(r["heldout_psnr"]), float(r["heldout_psnr_iterate"]))
-            for r in rows if r.get("heldout_psnr_iterate") and r["heldout_psnr"]]
+            for r in log_rows(root, entry) if r.get("heldout_psnr_iterate") and r["heldout_psnr"]]
 
 
 def fit_from_json(root: Path, entry: dict) -> dict:
@@ -75,9 +73,14 @@ def fit_from_json(root: Path, entry: dict) -> dict:
             "ms_per_iteration": result["ms_per_iteration"], "curve": [tuple(p) for p in result["heldout_by_time"]]}
 
 
-def fit_from_log(root: Path, entry: dict) -> dict:
+def log_rows(root: Path, entry: dict) -> list[dict]:
+    """The rows of the fit's train log."""
     with open(root / entry["log"], newline="") as file:
-        rows = list(csv.DictReader(file))
+        return list(csv.DictReader(file))
+
+
+def fit_from_log(root: Path, entry: dict) -> dict:
+    rows = log_rows(root, entry)
     last = rows[-1]
     curve = [(float(r["train_s"]), float(r["heldout_psnr"])) for r in rows if r["heldout_psnr"]]
     return {**entry, "final": printed_metrics((root / entry["text"]).read_text()), "iterations": int(last["iteration"]),
