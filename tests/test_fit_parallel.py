@@ -405,19 +405,20 @@ def test_resume_across_process_counts(small_capture, tmp_path):
     assert not (out / "checkpoint.pt").exists() and (out / "avatar.pt").exists()
 
 
-class _WritePid:
-    """Writes this rank's process id to `folder`/pid{rank} after its first iteration."""
+class _WriteOnce:
+    """Writes `value()` of this rank to `folder`/{name}{rank} after its first iteration."""
 
-    def __init__(self, folder: str, rank: int):
-        self.path = Path(folder) / f"pid{rank}"
+    def __init__(self, name: str, value, folder: str, rank: int):
+        self.path, self.value = Path(folder) / f"{name}{rank}", value
 
     def __call__(self, iteration: int) -> None:
         if not self.path.exists():
-            self.path.write_text(str(os.getpid()))
+            self.path.write_text(str(self.value()))
 
 
 def _pid_hooks(folder: str, rank: int) -> RankHooks:
-    return RankHooks(on_iteration=_WritePid(folder, rank))
+    """Each rank writes its process id to `folder`/pid{rank}."""
+    return RankHooks(on_iteration=_WriteOnce("pid", os.getpid, folder, rank))
 
 
 def _running(pid: int) -> bool:
@@ -470,19 +471,9 @@ def test_ranks_end_with_the_process_that_started_them(small_capture, tmp_path):
                 os.kill(int(p.read_text()), signal.SIGKILL)
 
 
-class _ThreadCount:
-    """Writes this rank's torch intra-op threads to `folder`/threads{rank} after its first iteration."""
-
-    def __init__(self, folder: str, rank: int):
-        self.path = Path(folder) / f"threads{rank}"
-
-    def __call__(self, iteration: int) -> None:
-        if not self.path.exists():
-            self.path.write_text(str(torch.get_num_threads()))
-
-
 def _thread_hooks(folder: str, rank: int) -> RankHooks:
-    return RankHooks(on_iteration=_ThreadCount(folder, rank))
+    """Each rank writes its torch intra-op threads to `folder`/threads{rank}."""
+    return RankHooks(on_iteration=_WriteOnce("threads", torch.get_num_threads, folder, rank))
 
 
 def test_each_rank_takes_its_share_of_the_cores(small_capture, tmp_path, monkeypatch):
