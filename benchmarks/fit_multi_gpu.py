@@ -154,7 +154,7 @@ class RankProbe:
             self.annotation.__enter__()
         else:
             self.profiler.stop()
-            try:  # the trace's reader uses the profiler's private event API: a torch that differs loses this only
+            try:  # a trace that cannot be read (a torch whose export differs) loses the kernel profile only
                 self.kernel_summary = summarise(split_trace(trace_rows(self.profiler)))
             except Exception as err:  # noqa: BLE001 (the rank's timing and phases are still written)
                 print(f"rank {self.rank}: kernel profile not read ({type(err).__name__}: {err})", file=sys.stderr)

@@ -3,12 +3,17 @@
 kernels overlapping on several streams count once), NCCL's part of it, the host's time in the step's operators, the
 kernels launched, and the costliest kernels.
 
-The trace is read as rows (activity, name, start ns, end ns, thread, correlation id, linked correlation id), the
-profiler's own fields (`trace_rows`); everything after that is plain arithmetic on them (`split_trace`,
-`summarise`), which tests/test_fit_multi_gpu.py checks against a brute-force count on synthetic traces.
+The trace is read from the profiler's Chrome-trace export (`trace_rows`), a public format that torch 2.11 and 2.13
+write alike (the private event API differs: 2.11's events have no activity_type, run31), as rows (activity, name,
+start ns, end ns, thread, correlation id, linked correlation id: `chrome_trace_rows`); everything after that is plain
+arithmetic on them (`split_trace`, `summarise`), which tests/test_fit_multi_gpu.py checks against a brute-force count
+on synthetic traces.
 """
 from __future__ import annotations
 
+import json
+import os
+import tempfile
 from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Iterable, NamedTuple
@@ -22,15 +27,36 @@ class Row(NamedTuple):
     name: str
     start: int  # ns, one clock for host and device events
     end: int
-    thread: int
+    thread: int | str  # the trace's thread id (a name for the profiler's own rows)
     correlation: int
     linked: int  # a runtime call's link to the operator that made it (0: none)
 
 
 def trace_rows(profiler) -> list[Row]:
-    """The rows of a stopped torch.profiler.profile's trace."""
-    return [Row(e.activity_type(), e.name(), e.start_ns(), e.end_ns(), e.start_thread_id(), e.correlation_id(),
-                e.linked_correlation_id()) for e in profiler.profiler.kineto_results.events()]
+    """The rows of a stopped torch.profiler.profile's trace, through its Chrome-trace export."""
+    with tempfile.TemporaryDirectory() as folder:
+        path = os.path.join(folder, "trace.json")
+        profiler.export_chrome_trace(path)
+        with open(path) as file:
+            return chrome_trace_rows(json.load(file)["traceEvents"])
+
+
+def chrome_trace_rows(events: list[dict]) -> list[Row]:
+    """Rows of a Chrome trace's complete events ("ph": "X"; ts and dur in microseconds). An operator's correlation
+    is its "External id"; a runtime call's correlation is its "correlation" (shared with the kernel it launched) and
+    its link is the "External id" of the operator that made it."""
+    rows = []
+    for event in events:
+        if event.get("ph") != "X" or "cat" not in event:
+            continue
+        args = event.get("args", {})
+        start = round(event["ts"] * 1000)
+        external = int(args.get("External id", 0))
+        runtime = event["cat"] == "cuda_runtime"
+        rows.append(Row(event["cat"], event["name"], start, start + round(event.get("dur", 0) * 1000),
+                        event.get("tid", 0), int(args.get("correlation", 0)) if runtime else external,
+                        external if runtime else 0))
+    return rows
 
 
 def union_length(intervals: Iterable[tuple[float, float]]) -> float:

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from kernel_profile import (ITERATION, Row, Trace, bus_bandwidth_gbs, clip, split_trace, summarise,  # noqa: E402
+from kernel_profile import (ITERATION, Row, Trace, bus_bandwidth_gbs, chrome_trace_rows, clip, split_trace, summarise,  # noqa: E402
                             trace_rows, union_length)
 
 with mock.patch.dict(os.environ):  # the benchmark sets NCCL's variables for its own processes, not this one's
@@ -114,8 +114,39 @@ def test_split_trace_keeps_the_steps_threads():
     assert trace.kernels == [(15, 25, "triton_poi_fused_0")]
 
 
+def test_chrome_trace_rows_link_a_runtime_call_to_its_operator():
+    # Chrome-trace events as torch's export writes them (microseconds; a runtime call carries its operator's
+    # "External id" and its kernel's "correlation"): the rows split as test_split_trace_keeps_the_steps_threads's do.
+    # Metadata and flow events, and events without a category, are not rows.
+    main, loader = 11, 13
+    events = [{"ph": "M", "name": "thread_name", "pid": 1, "tid": main, "args": {"name": "python"}},
+              {"ph": "X", "cat": "user_annotation", "name": ITERATION, "ts": 1000.0, "dur": 0.1, "tid": main,
+               "args": {"External id": 1}},
+              {"ph": "X", "cat": "cpu_op", "name": "aten::mul", "ts": 1000.01, "dur": 0.01, "tid": main,
+               "args": {"External id": 4}},
+              {"ph": "X", "cat": "cpu_op", "name": "aten::copy_", "ts": 1000.05, "dur": 0.01, "tid": loader,
+               "args": {"External id": 6}},
+              {"ph": "X", "cat": "cuda_runtime", "name": "cudaStreamSynchronize", "ts": 1000.012, "dur": 0.006,
+               "tid": main, "args": {"External id": 4, "correlation": 7}},
+              {"ph": "X", "cat": "cuda_runtime", "name": "cudaStreamSynchronize", "ts": 1000.052, "dur": 0.006,
+               "tid": loader, "args": {"External id": 6, "correlation": 8}},
+              {"ph": "X", "cat": "kernel", "name": "triton_poi_fused_0", "ts": 1000.015, "dur": 0.01, "pid": 0,
+               "tid": 7, "args": {"External id": 4, "correlation": 7}},
+              {"ph": "s", "cat": "ac2g", "name": "launch", "ts": 1000.012, "id": 7, "tid": main},
+              {"ph": "X", "name": "no category", "ts": 1000.0, "dur": 1.0, "tid": main}]
+    rows = chrome_trace_rows(events)
+    assert [r.activity for r in rows] == ["user_annotation", "cpu_op", "cpu_op", "cuda_runtime", "cuda_runtime",
+                                          "kernel"]
+    assert rows[3] == Row("cuda_runtime", "cudaStreamSynchronize", 1000012, 1000018, main, 7, 4)
+    trace = split_trace(rows)
+    assert trace.windows == [(1000000, 1000100)]
+    assert trace.host_ops == [(1000010, 1000020)]
+    assert trace.waits == [(1000012, 1000018)]  # the loader's wait is not the step's
+    assert trace.kernels == [(1000015, 1000025, "triton_poi_fused_0")]
+
+
 def test_a_real_cpu_trace_reads_as_its_iterations():
-    # The profiler's own rows (trace_rows) of 3 annotated iterations of a forward and backward on the CPU: three
+    # The profiler's exported rows (trace_rows) of 3 annotated iterations of a forward and backward on the CPU: three
     # windows, the operators inside them (autograd's among them), no kernel.
     weight = torch.randn(64, 64, requires_grad=True)
     profiler = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
@@ -148,7 +179,7 @@ def _no_bytes() -> int:
 
 
 def test_a_trace_that_cannot_be_read_loses_the_kernel_profile_only(tmp_path, capsys):
-    # The trace's reader uses the profiler's private event API: on a torch where it differs, the rank's record (ms/it,
+    # A trace that cannot be read (a torch whose export differs): the rank's record (ms/it,
     # phases, graphs) must still be written, with no kernel profile, and the reason said.
     probe = fit_multi_gpu.RankProbe(str(tmp_path), 1, 3, 1, 0, kernels=2, synchronize=_no_sync, peak_bytes=_no_bytes)
     with mock.patch.object(fit_multi_gpu, "trace_rows", side_effect=AttributeError("no activity_type")):
