@@ -12,7 +12,9 @@ one panel per metric, both subjects. Last, how much each curve wobbles over its 
 fit's final value is one draw from that wobble): the evaluations' mean, sd and mean |dip| (each inner evaluation
 against the mean of its two neighbours). A fit with a lever (extra overrides) carries a `label` in the manifest, which
 names it in place of its variant. A fit with a weight average (fit.average_decay) also logs, at each evaluation after
-the average started, the held-out PSNR of the iterate it averages: the last table pairs the two, within the fit:
+the average started, the held-out PSNR of the iterate it averages: the last table pairs the two, within the fit. Its
+last iterate, evaluated too (fit_gpu.py --evaluate-iterate) and given an `iterate_replicate` in the manifest, is a
+fit of the plain variant as well (the average does not feed back into the training; only its update's time differs):
 
     python benchmarks/equal_time.py --plot docs/equal_time.png
 """
@@ -50,11 +52,35 @@ REGION_LINE = re.compile(
 
 
 def load_fits(manifest: Path) -> list[dict]:
-    """The manifest's fits, each with its final metrics, iterations, ms/it and held-out curve [(train s, dB)]."""
+    """The manifest's fits, each with its final metrics, iterations, ms/it and held-out curve [(train s, dB)]; an
+    averaged fit whose last iterate was evaluated too (fit_gpu.py --evaluate-iterate) and whose entry gives it an
+    `iterate_replicate` number is also that replicate of its plain variant."""
     entries = yaml.safe_load(manifest.read_text())["fits"]
-    fits = [fit_from_json(manifest.parent, entry) if "json" in entry else fit_from_log(manifest.parent, entry)
-            for entry in entries]
-    return [{**fit, "variant": fit.get("label", fit["variant"])} for fit in fits]
+    fits = []
+    for entry in entries:
+        fit = fit_from_json(manifest.parent, entry) if "json" in entry else fit_from_log(manifest.parent, entry)
+        fits.append({**fit, "variant": fit.get("label", fit["variant"])})
+        if "iterate_replicate" in entry:
+            fits.append(iterate_fit(manifest.parent, fit))
+    return fits
+
+
+def iterate_fit(root: Path, fit: dict) -> dict:
+    """The plain variant's fit that an averaged fit's last iterate is: its own final metrics, and the held-out curve
+    of the iterate (the logged PSNR before the average started, the iterate's beside the average's after)."""
+    record = json.loads((root / fit["json"]).read_text())["results"]
+    [result] = [r for r in record if r.get("budget_iterate")]
+    curve = [(float(r["train_s"]), float(r["heldout_psnr_iterate"] or r["heldout_psnr"]))
+             for r in log_rows(root, fit) if r["heldout_psnr"]]
+    plain = {key: value for key, value in fit.items() if key not in ("label", "overrides")}
+    return {**plain, "variant": result["variant"], "replicate": fit["iterate_replicate"],
+            "iterate_of": f"{fit['variant']} #{fit['replicate']}",
+            "final": finest_levels(result["budget_iterate"]), "curve": curve}
+
+
+def finest_levels(budget: dict) -> dict:
+    """{split: the finest LOD's summary} of a fit_gpu.py budget record."""
+    return {split: budget[split][max(budget[split], key=int)] for split in ("novel_view", "novel_pose")}
 
 
 def averaged_pairs(root: Path, entry: dict) -> list[tuple[float, float, float]]:
@@ -67,8 +93,7 @@ def fit_from_json(root: Path, entry: dict) -> dict:
     record = json.loads((root / entry["json"]).read_text())["results"]
     [result] = [r for r in record if r.get("budget")]
     budget = result["budget"]
-    finest = {split: budget[split][max(budget[split], key=int)] for split in ("novel_view", "novel_pose")}
-    return {**entry, "variant": result["variant"], "final": finest, "iterations": budget["iterations"],
+    return {**entry, "variant": result["variant"], "final": finest_levels(budget), "iterations": budget["iterations"],
             "train_s": budget["train_s"], "compile_s": budget.get("compile_s", math.nan),
             "ms_per_iteration": result["ms_per_iteration"], "curve": [tuple(p) for p in result["heldout_by_time"]]}
 
@@ -141,7 +166,7 @@ def averaged_table(root: Path, fits: list[dict]) -> str:
     """Each averaged fit's held-out PSNR, average against iterate at the same evaluations (empty: none averaged)."""
     lines = []
     for fit in fits:
-        pairs = averaged_pairs(root, fit) if "log" in fit else []
+        pairs = averaged_pairs(root, fit) if "log" in fit and "iterate_of" not in fit else []
         if not pairs:
             continue
         gains = [average - iterate for _, average, iterate in pairs]
@@ -234,6 +259,10 @@ def main(argv=None) -> int:
     fits = load_fits(args.manifest)
     print(table(fits))
     for fit in fits:
+        if "iterate_of" in fit:
+            print(f"\n{fit['hold']} seed {fit['seed']} {fit['variant']} #{fit['replicate']}: the last iterate of "
+                  f"{fit['iterate_of']}", end="")
+            continue
         print(f"\n{fit['hold']} seed {fit['seed']} {fit['variant']} #{fit['replicate']} ({fit['device']}): "
               f"{fit['iterations']} iterations, "
               + ("" if math.isnan(fit["ms_per_iteration"]) else f"{fit['ms_per_iteration']:.1f} ms/it, ")

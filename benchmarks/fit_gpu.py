@@ -22,7 +22,9 @@ process) is done before its timed window.
 held-out evaluations, checkpoint writes and compilation, pig.avatar.training_clock; the learning-rate schedule's
 progress is the time fraction), then renders and evaluates novel view and novel
 pose at every LOD with the render and evaluate stages, and prints their PSNR and SSIM per LOD, and at the finest
-LOD the ground-truth metrics (regions, geometry, drift) where the evaluate stage computed them.
+LOD the ground-truth metrics (regions, geometry, drift) where the evaluate stage computed them. With a weight
+average (fit.average_decay), `--evaluate-iterate` evaluates the fit's last iterate as well (pig.avatar.training
+writes it beside the average): one fit gives the variant with and without the average.
 `--eval-every N` keeps the fit's held-out evaluations every N iterations and prints the held-out PSNR of every
 variant at each of them with its difference to the first variant's (the parity check of two paths);
 `--plot PATH` draws those curves. After the timed iterations, `--profile-phases N`
@@ -55,7 +57,7 @@ from torch._dynamo.utils import counters
 from pig.config import load_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig._io import write_json
-from pig.avatar.training import fit
+from pig.avatar.training import ITERATE_FILE, fit
 from pig.stages.preprocess import main as preprocess
 
 # Submodules of the avatar timed inside the "model" phase (the outermost one when they nest).
@@ -226,6 +228,9 @@ def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path, 
         result["phases_ms"] = timer.medians_ms()
     if args.budget:
         result["budget"] = evaluate_budget_run(args, name, out_dir, path, capture)
+        if args.evaluate_iterate and (out_dir / ITERATE_FILE).exists():  # a weight average's last iterate, after it
+            result["budget_iterate"] = evaluate_budget_run(args, f"{name}_iterate", out_dir, path, capture,
+                                                           ITERATE_FILE)
     if args.eval_every:
         with open(out_dir / "train_log.csv", newline="") as file:
             rows = [row for row in csv.DictReader(file) if row["heldout_psnr"]]
@@ -245,8 +250,10 @@ GROUND_TRUTH_KEYS = ("psnr_garment", "ssim_garment", "psnr_body", "ssim_body", "
                      "completeness_mm_garment", "accuracy_mm_body", "completeness_mm_body", "drift_mm", "drift_mm_last")
 
 
-def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capture: Path) -> dict:
-    """Render and evaluate novel view and novel pose at every LOD; {split: {lod: {psnr, ssim, images}}} + iterations."""
+def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capture: Path,
+                        checkpoint: str = "avatar.pt") -> dict:
+    """Render and evaluate `checkpoint`'s novel view and novel pose at every LOD; {split: {lod: {psnr, ssim, images}}}
+    + iterations."""
     from pig.stages.evaluate import main as evaluate, render_levels
     from pig.stages.render import main as render
     from pig._io import read_record
@@ -259,7 +266,7 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
     for split in ("novel_view", "novel_pose"):
         renders = args.workdir / f"renders_{name}" / split
         metrics = args.workdir / f"metrics_{name}"
-        render(["--checkpoint", str(fit_dir / "avatar.pt"), "--capture", str(capture), "--split", split, "--output", str(renders),
+        render(["--checkpoint", str(fit_dir / checkpoint), "--capture", str(capture), "--split", split, "--output", str(renders),
                 "--preset", str(profile_path), "--overwrite"])
         finest = ["--lod", str(max(render_levels(renders)))] if args.finest_only else []
         evaluate(["--capture", str(capture), "--renders", str(renders), "--split", split, "--output", str(metrics),
@@ -316,6 +323,9 @@ def main(argv=None) -> int:
     parser.add_argument("--eval-every", type=int, default=None, help="held-out evaluation every N iterations (parity)")
     parser.add_argument("--plot", type=Path, default=None, help="with --eval-every: plot of the held-out PSNR curves")
     parser.add_argument("--finest-only", action="store_true", help="budget mode: evaluate the finest LOD only")
+    parser.add_argument("--evaluate-iterate", action="store_true",
+                        help="budget mode, with a weight average (fit.average_decay): evaluate the fit's last iterate "
+                             f"({ITERATE_FILE}) too, after the average (its JSON key: budget_iterate)")
     parser.add_argument("--warm-compile", type=int, default=0, help="untimed fit of N iterations before the variants")
     parser.add_argument("--capture-only", action="store_true", help="generate and preprocess the capture, then stop")
     parser.add_argument("--compile-cache", type=Path, default=None,
@@ -401,20 +411,21 @@ def main(argv=None) -> int:
         print(f"\nFixed budget {args.budget:.0f} s of training: PSNR dB / SSIM per LOD (0 = coarsest)")
         print("| variant | iterations | " + " | ".join(f"{split} lod{l}" for split in ("novel_view", "novel_pose") for l in levels) + " |")
         print("|---|---|" + "---|" * (2 * len(levels)))
-        for r in results:
-            b = r["budget"]
+        evaluated = [(r["name"], r["budget"]) for r in results] + [(f"{r['name']} (its last iterate)", r["budget_iterate"])
+                                                                 for r in results if "budget_iterate" in r]
+        for label, b in evaluated:
             cells = [cell(b, split, l) for split in ("novel_view", "novel_pose") for l in levels]
-            print(f"| {r['name']} | {b['iterations']} | " + " | ".join(cells) + " |")
-        if any("psnr_garment" in r["budget"]["novel_view"][max(r["budget"]["novel_view"])] for r in results):
+            print(f"| {label} | {b['iterations']} | " + " | ".join(cells) + " |")
+        if any("psnr_garment" in b["novel_view"][max(b["novel_view"])] for _, b in evaluated):
             for split in ("novel_view", "novel_pose"):
                 print(f"\nGround truth, {split}, finest LOD: PSNR dB / SSIM per region; geometry mm (accuracy: splats to "
                       "the true surface, completeness: the true surface to splats); correspondence drift mm")
                 print("| variant | LOD | garment | body | background | garment acc / comp | body acc / comp | drift mean / last |")
                 print("|---|---|---|---|---|---|---|---|")
-                for r in results:
-                    lod = max(r["budget"][split])
-                    m = r["budget"][split][lod]
-                    print(f"| {r['name']} | {lod} | {m['psnr_garment']:.2f} / {m['ssim_garment']:.4f} | "
+                for label, b in evaluated:
+                    lod = max(b[split])
+                    m = b[split][lod]
+                    print(f"| {label} | {lod} | {m['psnr_garment']:.2f} / {m['ssim_garment']:.4f} | "
                           f"{m['psnr_body']:.2f} / {m['ssim_body']:.4f} | {m['psnr_background']:.2f} | "
                           f"{m['accuracy_mm_garment']:.1f} / {m['completeness_mm_garment']:.1f} | "
                           f"{m['accuracy_mm_body']:.1f} / {m['completeness_mm_body']:.1f} | "

@@ -1,5 +1,6 @@
 """Weight averaging (pig.avatar.averaging): the EMA against its closed form in float64, the swap in and out, its
-state, and a fit that evaluates and saves the average, restarts it where the grid is re-based, and resumes it."""
+state, and a fit that evaluates and saves the average (and its last iterate beside it), restarts it where the grid is
+re-based, and resumes it."""
 import math
 
 import numpy as np
@@ -161,6 +162,8 @@ def test_fit_evaluates_and_saves_the_average_restarts_it_at_the_grid_switch_and_
         np.testing.assert_allclose(saved[name].double().numpy(), value, rtol=1e-5, atol=1e-6, err_msg=name)
         differs += not torch.allclose(saved[name], last_iterate[name].detach().cpu())
     assert differs > len(expected) // 2  # the file holds the average, not the last iterate
+    iterate_file = torch.load(tmp_path / "full" / training.ITERATE_FILE, weights_only=True)["model"]
+    assert all(torch.equal(iterate_file[name], value.detach().cpu()) for name, value in last_iterate.items())
 
     log = pd.read_csv(tmp_path / "full" / "train_log.csv")
     evaluated = log.dropna(subset=["heldout_psnr"])
@@ -184,3 +187,40 @@ def test_fit_evaluates_and_saves_the_average_restarts_it_at_the_grid_switch_and_
     resumed = training.fit(small_capture, tmp_path / "resumed", preset)
     a, b = load_avatar(reference).state_dict(), load_avatar(resumed).state_dict()
     assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
+    a, b = (load_avatar(root / training.ITERATE_FILE).state_dict() for root in (tmp_path / "full", tmp_path / "resumed"))
+    assert all(torch.equal(a[key], b[key]) for key in a)
+
+    # A fit without an average in the same folder leaves no iterate of the earlier fit beside its avatar.pt.
+    training.fit(small_capture, tmp_path / "full", _preset(tmp_path, iterations=2, eval_every=5), overwrite=True)
+    assert not (tmp_path / "full" / training.ITERATE_FILE).exists()
+
+
+@pytest.mark.slow
+def test_fit_gpu_evaluates_the_average_and_its_last_iterate(small_capture, tmp_path):
+    # benchmarks/fit_gpu.py --evaluate-iterate: the budget mode's render and evaluate of both files of one averaged
+    # fit, on the CPU: each split rendered from its own file (the render manifests' checksums) and scored apart.
+    import argparse
+    import hashlib
+    import json
+    import sys
+    from pathlib import Path
+
+    from pig.avatar.training import ITERATE_FILE, fit
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from fit_gpu import evaluate_budget_run
+
+    preset = _preset(tmp_path, iterations=8, eval_every=100, checkpoint_minutes=0.0, average_decay=0.5,
+                     average_start=0.0)
+    fit_dir = tmp_path / "fit"
+    fit(small_capture, fit_dir, preset)
+    args = argparse.Namespace(workdir=tmp_path / "work", finest_only=True)
+    average = evaluate_budget_run(args, "v", fit_dir, Path(preset), small_capture)
+    iterate = evaluate_budget_run(args, "v_iterate", fit_dir, Path(preset), small_capture, ITERATE_FILE)
+    assert average["iterations"] == iterate["iterations"] == 8
+    for split in ("novel_view", "novel_pose"):
+        (lod,) = average[split]
+        assert average[split][lod]["psnr"] != iterate[split][lod]["psnr"]
+    for folder, name in (("renders_v", "avatar.pt"), ("renders_v_iterate", ITERATE_FILE)):
+        manifest = json.loads((tmp_path / "work" / folder / "novel_view" / "manifest.json").read_text())
+        assert manifest["checkpoint_sha256"] == hashlib.sha256((fit_dir / name).read_bytes()).hexdigest()

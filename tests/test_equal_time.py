@@ -1,6 +1,7 @@
 """benchmarks/equal_time.py: a fit read from its train log and printed lines agrees with the same fit's JSON."""
 import copy
 import csv
+import json
 import math
 import sys
 from pathlib import Path
@@ -98,3 +99,34 @@ def test_the_average_is_paired_with_its_iterate_at_the_same_evaluations():
              if line.startswith("| 0 |")]
     assert row.rstrip(" |").endswith(f"{sum(gains) / len(gains):+.2f} ({min(gains):+.2f} to {max(gains):+.2f})")
     assert averaged_table(RUNS, [{**PLAIN, "variant": "pig"}]) == ""  # no average, no table
+
+
+def test_an_evaluated_last_iterate_is_a_replicate_of_the_plain_variant(tmp_path):
+    # fit_gpu.py --evaluate-iterate's record (budget_iterate beside budget), built from run30's averaged pig with
+    # other figures for the iterate: with `iterate_replicate` the manifest gives the averaged row and a plain `pig`
+    # row pooled with run30's plain pig, whose curve is the logged iterate's (the average's before it started).
+    record = json.loads((RUNS / AVERAGED["json"]).read_text())
+    [result] = [r for r in record["results"] if r.get("budget")]
+    result["budget_iterate"] = copy.deepcopy(result["budget"])
+    for split in ("novel_view", "novel_pose"):
+        for summary in result["budget_iterate"][split].values():
+            summary["psnr"] -= 0.5
+    (tmp_path / "run30").mkdir()
+    (tmp_path / "run30" / "pig_3.json").write_text(json.dumps(record))
+    for name in ("pig_3_train_log.csv", "pig_0.json", "pig_0_train_log.csv"):
+        (tmp_path / "run30" / name).symlink_to(RUNS / "run30" / name)
+    manifest = tmp_path / "equal_time.yaml"
+    manifest.write_text(yaml.safe_dump({"fits": [PLAIN, {**AVERAGED, "iterate_replicate": 2}]}))
+    fits = load_fits(manifest)
+    assert [(f["variant"], f["replicate"]) for f in fits] == [("pig", 1), ("pig average 0.99", 1), ("pig", 2)]
+    averaged, iterate = fits[1], fits[2]
+    assert iterate["final"]["novel_view"]["psnr"] == pytest.approx(averaged["final"]["novel_view"]["psnr"] - 0.5)
+    with open(RUNS / AVERAGED["log"], newline="") as file:
+        logged = [r for r in csv.DictReader(file) if r["heldout_psnr"]]
+    assert [p for _, p in iterate["curve"]] == [float(r["heldout_psnr_iterate"] or r["heldout_psnr"]) for r in logged]
+    assert iterate["curve"][0] == averaged["curve"][0] and iterate["curve"][-1] != averaged["curve"][-1]
+    [row] = [line for line in table(fits).split("\n\n")[0].splitlines() if line.startswith("| 0 | 5 min | pig |")]
+    plain_nv = fit_from_json(RUNS, PLAIN)["final"]["novel_view"]["psnr"]
+    nv = [plain_nv, iterate["final"]["novel_view"]["psnr"]]
+    assert row.split(" | ")[3] == "2" and row.split(" | ")[5].startswith(f"{sum(nv) / 2:.2f} ± {(max(nv) - min(nv)) / 2:.2f}")
+    assert len([line for line in averaged_table(tmp_path, fits).splitlines() if line.startswith("| 0 |")]) == 1

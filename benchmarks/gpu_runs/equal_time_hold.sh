@@ -9,7 +9,9 @@
 #                                processes: 203-231 s on the 64-CPU 4-GPU hosts; 32 took 219 s there, run31, and 334 s
 #                                on a 32-CPU host), then the first round: one fit per GPU, started detached from a
 #                                copy under /tmp. A VARIANT may carry
-#                                overrides after a colon (fit_gpu.py --variant), e.g. pig:fit.average_decay=0.99
+#                                overrides after a colon (fit_gpu.py --variant), e.g. pig:fit.average_decay=0.99; a
+#                                fit with a weight average is evaluated twice, the average and then its last iterate
+#                                (fit_gpu.py --evaluate-iterate: ~100 s more at the end of the round)
 #   n BUDGET_S VARIANT...        the next round on the same subject, once the last round has ended (its fits start
 #                                together again; torch.compile's artifacts of an earlier round's variant are loaded:
 #                                fit_gpu.py --compile-cache, kept on the machine, since at 23-27 MB a variant they
@@ -49,7 +51,7 @@ start_round() {  # BUDGET_S VARIANT...: one fit per GPU
     earlier=$(ls /tmp/cc/${name}_*.bin.gz 2>/dev/null | head -1)  # one file a run: two fits of a round may share a variant
     [ -n "$earlier" ] && cp "$earlier" /tmp/cc/$run.bin.gz
     CUDA_VISIBLE_DEVICES=$gpu setsid nohup python3 benchmarks/fit_gpu.py --workdir /tmp/w_$run --seed "$(cat $RES/seed)" \
-      --frames 10 --reuse-capture --iterations 300 --warmup 200 --budget $budget --eval-every 1000 --finest-only \
+      --frames 10 --reuse-capture --iterations 300 --warmup 200 --budget $budget --eval-every 1000 --finest-only --evaluate-iterate \
       --variant "$name:$RATES${extra:+,$extra}" --compile-cache /tmp/cc/$run.bin.gz --json $RES/$run.json \
       > $RES/$run.txt 2>&1 < /dev/null &
     echo "started $run ($name${extra:+ with $extra}, $budget s) on GPU $gpu at $(date +%T)"; gpu=$((gpu + 1))

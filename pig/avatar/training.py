@@ -67,7 +67,10 @@ from pig._outputs import claim_files, output_lock
 LOG_COLUMNS = ["iteration", "wall_s", "train_s", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr",
                "heldout_psnr_iterate", "probe_psnr", "eval_s", "data_wait_ms", "compile_s"]
 EVALUATION_COLUMNS = ["heldout_psnr", "heldout_psnr_iterate", "probe_psnr", "eval_s"]  # "" in rows without one
-OUTPUT_FILES = ["avatar.pt", "checkpoint.pt", "train_log.csv", "train_log.png"]
+# With a weight average (fit.average_decay) avatar.pt holds the average and ITERATE_FILE the last iterate, which the
+# average is compared with (benchmarks/fit_gpu.py --evaluate-iterate); a fit without one leaves no ITERATE_FILE.
+ITERATE_FILE = "avatar_iterate.pt"
+OUTPUT_FILES = ["avatar.pt", ITERATE_FILE, "checkpoint.pt", "train_log.csv", "train_log.png"]
 # train_log.png is redrawn at the start, at each full held-out evaluation (the end's included), and at a probe when
 # this long has passed since the last draw: a draw costs more than a probe (benchmarks/NOTES.md, "Workflow").
 REDRAW_S = 120.0
@@ -591,6 +594,10 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         parallel.check_replicas(model, f"at the end (iteration {iteration})")
         if not lead:
             return avatar_path
+    if average is not None and average.started:
+        checkpoint(avatar_path.with_name(ITERATE_FILE), iteration, clock)
+    else:  # an earlier fit's iterate in this fit's folder would not belong to this avatar.pt
+        avatar_path.with_name(ITERATE_FILE).unlink(missing_ok=True)
     with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
         checkpoint(avatar_path, iteration, clock)
     state_path.unlink(missing_ok=True)
