@@ -21,6 +21,12 @@ which NCCL kernels, and the other kernels' (compute); NCCL time that no compute 
 step's torch operators (main and autograd threads) less its blocking CUDA waits; kernels per iteration; and rank
 0's 8 costliest kernels. The table's last line is each rank's GPU idle fraction (1 - busy / wall): high at 4 ranks,
 with host time near wall, is a host-bound step; a large NCCL-alone time is an all-reduce the backward does not hide.
+In those iterations (and only there) each phase of the step is a profiler annotation (`RankProbe.phase`:
+"pig_phase:loss", ...; the synchronised `--profile-phases` iterations come before them, never the same), and a table
+per run gives, per phase and rank, the host's window (ms/it), its blocking CUDA waits, the kernels launched inside it
+(from the main or the autograd thread), their summed time, their union (GPU busy) and NCCL's part, and a verdict:
+"wait" where the waits fill half the window, else "host" where GPU busy < 50 % of the window (launch-bound),
+"GPU" where >= 75 %, else "mixed".
 The scaling table also gives the gradients' bytes all-reduced per step and their buckets (GradientReducer), and
 with the kernel profile the all-reduce's implied bus bandwidth.
 
@@ -77,7 +83,8 @@ from pig.data.capture import Capture
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fit_gpu import PhaseTimer, main as fit_gpu_main  # noqa: E402
-from kernel_profile import ITERATION, bus_bandwidth_gbs, split_trace, summarise, trace_rows  # noqa: E402
+from kernel_profile import (ITERATION, PHASE, bus_bandwidth_gbs, phase_verdict, split_trace, summarise,  # noqa: E402
+                            trace_rows)
 
 # Parts of a step that every rank computes whole, whatever the GPU count (the rest is shared out by views).
 REPLICATED = ("model.grid", "model.anchor_solve", "model.refiner", "step")
@@ -92,9 +99,9 @@ CAPTURE = "data/capture"  # under --workdir: benchmarks/fit_gpu.py's capture, ma
 class RankProbe:
     """One rank's timing: the device synchronised where the timed window starts and ends, the phases of the
     `profile` iterations after it, the `kernels` iterations after those under torch.profiler (no synchronise
-    inserted but at their ends: benchmarks/kernel_profile.py), and at the last iteration a JSON record of ms/it, peak
-    memory, phases, the kernel profile's summary and the gradient all-reduce's size. `synchronize` and `peak_bytes`:
-    the CUDA device's by default (a CPU test passes its own)."""
+    inserted but at their ends, each phase an annotation: benchmarks/kernel_profile.py), and at the last iteration a
+    JSON record of ms/it, peak memory, phases, the kernel profile's summary (by phase too) and the gradient
+    all-reduce's size. `synchronize` and `peak_bytes`: the CUDA device's by default (a CPU test passes its own)."""
 
     def __init__(self, out: str, warmup: int, iterations: int, profile: int, rank: int, kernels: int = 0,
                  synchronize: Callable[[], None] = torch.cuda.synchronize,
@@ -161,6 +168,10 @@ class RankProbe:
             self.profiler = self.annotation = None
 
     def phase(self, name: str):
+        """The timer's phase in the synchronised iterations; in the profiled ones (an ITERATION annotation open) an
+        annotation PHASE + name, which synchronises nothing; elsewhere nothing."""
+        if self.annotation is not None:
+            return torch.profiler.record_function(PHASE + name)
         return self.timer(name) if self.timer is not None else _null()
 
 
@@ -409,6 +420,9 @@ def print_tables(results: list[dict], args, capture: Path) -> None:
     profiled = [r for r in results if any(r["rank_kernels"])]
     if profiled:
         print_kernels(profiled)
+        for r in profiled:
+            if any(k and k.get("phases") for k in r["rank_kernels"]):
+                print_kernel_phases(r)
 
 
 def print_phases(results: list[dict], base: dict, counts: list[int]) -> None:
@@ -481,6 +495,29 @@ def print_kernels(results: list[dict]) -> None:
           "(launches, Python, autograd, threads competing for the cores); a large NCCL-alone time is communication "
           "that the backward does not hide; neither, with compute ms/it not shrinking with the views a rank takes, "
           "is work that each rank repeats or that does not scale with its views.")
+
+
+def print_kernel_phases(r: dict) -> None:
+    """A run's kernel profile by phase (kernel_profile.summarise_phases), a row per phase and rank."""
+    print(f"\nKernel profile by phase, {label(r)} (ms per profiled iteration; the host's window of the phase on the "
+          "main thread, its blocking CUDA waits; the kernels launched inside it from the main or the autograd thread, "
+          "their summed time, their union (GPU busy, wherever it lies) and NCCL's part of it; a nested phase, "
+          "*.own, counts in its own row and in its parent's. Verdict: wait where waits >= 50 % of the window, else "
+          "host where busy < 50 % of it (the device waits for launches), GPU where >= 75 %, else mixed)")
+    print("| phase | rank | host ms | host wait ms | launches | kernel ms | GPU busy ms | NCCL ms | busy / host | "
+          "verdict |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    names = list(dict.fromkeys(n for k in r["rank_kernels"] if k for n in k.get("phases", {})))  # in step order
+    for name in names:
+        for rank, k in enumerate(r["rank_kernels"]):
+            p = (k or {}).get("phases", {}).get(name)
+            if p is None:
+                print(f"| {name} | {rank} | - | - | - | - | - | - | - | - |")
+                continue
+            share = f"{100 * p['gpu_busy_ms'] / p['host_ms']:.0f} %" if p["host_ms"] > 0 else "-"
+            print(f"| {name} | {rank} | {p['host_ms']:.2f} | {p['host_wait_ms']:.2f} | {p['launches']:.0f} | "
+                  f"{p['kernel_ms']:.2f} | {p['gpu_busy_ms']:.2f} | {p['nccl_ms']:.2f} | {share} | "
+                  f"{phase_verdict(p)} |")
 
 
 if __name__ == "__main__":

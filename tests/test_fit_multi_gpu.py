@@ -1,6 +1,6 @@
-"""benchmarks/fit_multi_gpu.py and benchmarks/kernel_profile.py: the kernel profile's interval arithmetic against a
-brute-force count on synthetic traces, its reading of a real (CPU) profiler trace, and `--collect` over the run
-folders found, partial ones included."""
+"""benchmarks/fit_multi_gpu.py and benchmarks/kernel_profile.py: the kernel profile's interval arithmetic, whole and
+by phase, against a brute-force count on synthetic traces, its reading of a real (CPU) profiler trace, the phases'
+annotations in the profiled iterations only, and `--collect` over the run folders found, partial ones included."""
 import functools
 import json
 import os
@@ -15,7 +15,8 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from kernel_profile import (ITERATION, Row, Trace, bus_bandwidth_gbs, chrome_trace_rows, clip, split_trace, summarise,  # noqa: E402
+from kernel_profile import (BACKWARD_OP, ITERATION, PHASE, Row, Trace, bus_bandwidth_gbs,  # noqa: E402
+                            chrome_trace_rows, clip, phase_verdict, split_trace, summarise, summarise_phases,
                             trace_rows, union_length)
 
 with mock.patch.dict(os.environ):  # the benchmark sets NCCL's variables for its own processes, not this one's
@@ -145,6 +146,120 @@ def test_chrome_trace_rows_link_a_runtime_call_to_its_operator():
     assert trace.kernels == [(1000015, 1000025, "triton_poi_fused_0")]
 
 
+def test_chrome_trace_rows_give_a_kernel_its_launchs_correlation():
+    # A kernel's event carries its operator's "External id" and its launch's "correlation": its row's correlation is
+    # the latter (as the launch's row's, runtime or driver call alike), its link the former.
+    main = 11
+    events = [{"ph": "X", "cat": "cpu_op", "name": "aten::mul", "ts": 10.0, "dur": 1.0, "tid": main,
+               "args": {"External id": 4}},
+              {"ph": "X", "cat": "cuda_driver", "name": "cuLaunchKernel", "ts": 10.2, "dur": 0.1, "tid": main,
+               "args": {"External id": 4, "correlation": 9}},
+              {"ph": "X", "cat": "kernel", "name": "triton_poi_fused_0", "ts": 10.5, "dur": 2.0, "pid": 0, "tid": 7,
+               "args": {"External id": 4, "correlation": 9}}]
+    rows = chrome_trace_rows(events)
+    assert rows[1] == Row("cuda_driver", "cuLaunchKernel", 10200, 10300, main, 9, 4)
+    assert rows[2] == Row("kernel", "triton_poi_fused_0", 10500, 12500, 7, 9, 4)
+    events[0]["args"]["External id"] = 9  # an operator whose External id equals the kernel's correlation
+    events[1]["args"]["External id"] = events[2]["args"]["External id"] = 9
+    rows = chrome_trace_rows(events + [{"ph": "X", "cat": "user_annotation", "name": ITERATION, "ts": 9.0,
+                                        "dur": 5.0, "tid": main, "args": {"External id": 1}},
+                                       {"ph": "X", "cat": "user_annotation", "name": PHASE + "loss", "ts": 10.0,
+                                        "dur": 0.25, "tid": main, "args": {"External id": 2}}])
+    assert summarise_phases(split_trace(rows))["loss"]["launches"] == 1
+
+
+PHASES = ("sample", "model", "render", "loss", "backward", "step")
+
+
+def _phase_rows(rng: random.Random, iterations: list[tuple[int, int]], main: int) -> list[Row]:
+    """Each iteration cut into consecutive phases (a name may come back, as `render` and `loss` do per view), gaps
+    left unannotated, and a `model.decoders` nested in each `model`."""
+    rows = []
+    for lo, hi in iterations:
+        cuts = sorted(rng.sample(range(lo, hi + 1), min(hi + 1 - lo, rng.randrange(2, 9))))
+        for start, end in zip(cuts, cuts[1:]):
+            if rng.random() < 0.2:
+                continue
+            name = rng.choice(PHASES)
+            rows.append(Row("user_annotation", PHASE + name, start, end, main, 0, 0))
+            if name == "model":
+                a, b = sorted(rng.randrange(start, end + 1) for _ in range(2))
+                rows.append(Row("user_annotation", PHASE + "model.decoders", a, b, main, 0, 0))
+    return rows
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_phases_against_cell_count(seed):
+    # Synthetic trace: iterations on the main thread, phase windows (nested, repeated), kernels launched from the
+    # main, the autograd and the loader's threads (the runtime call linked to its thread's operator, or carrying its
+    # own thread), some launched twice (runtime and driver), overlapping on two streams, one launched before every
+    # phase, one with no launch; blocking waits on the main and the loader's threads; a phase-named annotation on the
+    # loader's thread. Brute force per phase on the grid's cells: the windows' cells, the kernels whose earliest launch
+    # from a step thread lies in one of them, their lengths' sum and cells, the main thread's waits inside the windows.
+    rng = random.Random(seed)
+    main, autograd, loader = 11, 12, 13
+    step = (main, autograd)
+    operator = {main: 1, autograd: 2, loader: 3}
+    cuts = sorted(rng.sample(range(30, SPAN - 30), rng.randrange(1, 4)))
+    iterations = list(zip([10] + cuts, cuts + [SPAN - 10]))
+    rows = [Row("user_annotation", ITERATION, lo, hi, main, 5, 0) for lo, hi in iterations]
+    rows += [Row("cpu_op", "aten::mul", 0, SPAN, main, 1, 0),
+             Row("cpu_op", BACKWARD_OP + ": MulBackward0", 0, SPAN, autograd, 2, 0),
+             Row("cpu_op", "aten::copy_", 0, SPAN, loader, 3, 0),
+             Row("user_annotation", PHASE + "loss", 0, SPAN, loader, 6, 0)]  # not the main thread's
+    rows += _phase_rows(rng, iterations, main)
+    names = ["ncclDevKernel_AllReduce_Sum_f32_RING_LL", "triton_poi_fused_0", "rasterize_to_pixels_fwd"]
+    kernels = []  # (launch, thread, start, end, name)
+    for k in range(rng.randrange(0, 60)):
+        correlation = 1000 + k
+        launch, thread = (2, main) if k == 0 else (rng.randrange(SPAN - 40), rng.choice(list(operator)))
+        linked = rng.random() < 0.5  # the profiler's own thread number, resolved through the operator
+        rows.append(Row(rng.choice(["cuda_runtime", "cuda_driver"]), "cudaLaunchKernel", launch, launch + 1,
+                        99 if linked else thread, correlation, operator[thread] if linked else 0))
+        if rng.random() < 0.2:
+            rows.append(Row("cuda_driver", "cuLaunchKernel", launch + 3, launch + 4, thread, correlation, 0))
+        start = launch + rng.randrange(0, 20)
+        end = start + rng.randrange(0, 20)
+        name = rng.choice(names)
+        rows.append(Row("kernel", name, start, end, rng.choice([7, 8]), correlation, operator[thread]))
+        kernels.append((launch, thread, start, end, name))
+    rows.append(Row("kernel", "orphan", 50, 60, 7, 5000, 0))  # no launch recorded: in no phase
+    waits = {thread: _intervals(rng, rng.randrange(0, 6)) for thread in (main, loader)}
+    rows += [Row("cuda_runtime", "cudaStreamSynchronize", s, e, 99, 0, operator[thread])
+             for thread, spans in waits.items() for s, e in spans]
+    rng.shuffle(rows)
+
+    trace = split_trace(rows)
+    got = summarise_phases(trace)
+    assert summarise(trace)["phases"] == got
+    windows: dict[str, list] = {}
+    for r in rows:
+        if r.activity == "user_annotation" and r.name.startswith(PHASE) and r.thread == main:
+            windows.setdefault(r.name[len(PHASE):], []).append((r.start, r.end))
+    assert list(got) == sorted(windows, key=lambda name: (min(s for s, _ in windows[name]), name))  # step order
+    n = len(iterations)
+    for name, spans in windows.items():
+        cells = _cells(spans)
+        mine = [(s, e, k) for t, thread, s, e, k in kernels if thread in step and cells[t]]
+        expect = {"host_ms": cells.sum(), "host_wait_ms": (cells & _cells(waits[main])).sum(),
+                  "launches": len(mine), "kernel_ms": sum(e - s for s, e, _ in mine),
+                  "gpu_busy_ms": _cells([(s, e) for s, e, _ in mine]).sum(),
+                  "nccl_ms": _cells([(s, e) for s, e, k in mine if k.startswith("nccl")]).sum()}
+        for key, value in expect.items():
+            assert got[name][key] == pytest.approx(value / n * (1 if key == "launches" else 1e-6), abs=1e-12), \
+                (name, key)
+
+
+def test_phase_verdict_thresholds():
+    def phase(host, busy, wait=0.0):
+        return {"host_ms": host, "gpu_busy_ms": busy, "host_wait_ms": wait}
+
+    assert [phase_verdict(phase(10.0, busy)) for busy in (0.0, 4.9, 5.0, 7.4, 7.5, 30.0)] == \
+        ["host", "host", "mixed", "mixed", "GPU", "GPU"]
+    assert phase_verdict(phase(10.0, 0.0, wait=5.0)) == "wait" and phase_verdict(phase(10.0, 0.0, 4.9)) == "host"
+    assert phase_verdict(phase(0.0, 1.0)) == "-"
+
+
 def test_a_real_cpu_trace_reads_as_its_iterations():
     # The profiler's exported rows (trace_rows) of 3 annotated iterations of a forward and backward on the CPU: three
     # windows, the operators inside them (autograd's among them), no kernel.
@@ -190,6 +305,27 @@ def test_a_trace_that_cannot_be_read_loses_the_kernel_profile_only(tmp_path, cap
     assert "kernel profile not read (AttributeError: no activity_type)" in capsys.readouterr().err
 
 
+def test_phases_are_annotated_in_the_profiled_iterations_only(tmp_path):
+    # The probe's phase(name) over a fit's iterations (the fit calls on_iteration(i) after iteration i, 1-based):
+    # the timer's synchronised phase in iterations 3..4, a profiler annotation PHASE + name in 5..6 (never both),
+    # nothing before or after; the profiled iterations' trace holds the phases' windows.
+    probe = fit_multi_gpu.RankProbe(str(tmp_path), 1, 3, 2, 0, kernels=2, synchronize=_no_sync, peak_bytes=_no_bytes)
+    timed, annotated = [], []
+    for iteration in range(8):  # the iteration begun after on_iteration(iteration)
+        if iteration:
+            probe(iteration)
+        with probe.phase("loss") as entered:
+            if isinstance(entered, torch.profiler.record_function):
+                assert entered.name == PHASE + "loss"
+                annotated.append(iteration)
+            if probe.timer.active:
+                timed.append(iteration)
+            torch.ones(4).sum()
+    assert timed == [3, 4] and annotated == [5, 6]
+    record = json.loads((tmp_path / "rank0.json").read_text())
+    assert set(record["kernels"]["phases"]) == {"loss"} and record["phases_ms"].keys() == {"loss"}
+
+
 def _cpu_probe_hooks(folder: str, rank: int):
     """The benchmark's hooks of a rank (fit_multi_gpu.rank_hooks) on the CPU: 1 warm-up iteration, 2 timed, 1 timed
     per phase, 2 under the profiler (iterations 5 and 6; the 7th ends the fit with its evaluation)."""
@@ -218,6 +354,11 @@ def test_rank_records_of_a_profiled_data_parallel_fit(small_capture, tmp_path, c
         assert profile["iterations"] == 2 and profile["kernels"] == 0 and profile["gpu_busy_ms"] == 0
         assert 0 < profile["host_ms"] <= profile["wall_ms"]
         assert set(record["phases_ms"]) >= {"model", "loss", "backward", "reduce", "step"}
+        phases = profile["phases"]  # the same phases' windows in the profiled iterations, no kernel in any
+        assert set(phases) >= {"sample", "model", "render", "loss", "backward", "reduce", "step"}
+        assert all(p["launches"] == p["kernel_ms"] == p["gpu_busy_ms"] == 0 for p in phases.values())
+        assert all(phases[n]["host_ms"] > 0 for n in ("model", "render", "loss", "backward", "step"))
+        assert sum(p["host_ms"] for n, p in phases.items() if "." not in n) <= profile["wall_ms"]
     assert records[0]["bucket_bytes"] == records[1]["bucket_bytes"]
     model = load_avatar(run / "fit" / "avatar.pt")  # the avatar rebuilt: its trainable parameters' bytes
     assert sum(records[0]["bucket_bytes"]) == sum(p.numel() * p.element_size() for p in model.parameters()
@@ -227,6 +368,11 @@ def test_rank_records_of_a_profiled_data_parallel_fit(small_capture, tmp_path, c
     out = capsys.readouterr().out
     assert "| 2 GPU | 0 |" in out and "| 2 GPU | 1 |" in out
     assert "GPU idle per rank (1 - busy / wall): 2 GPU: 100 % / 100 %" in out
+    by_phase = [line for line in out.splitlines() if line.startswith(("| backward |", "| loss |"))
+                and line.count("|") == 11]  # the kernel profile's by phase, not the synchronised phases' table
+    assert [line.split("|")[1:3] for line in by_phase] == [[" loss ", " 0 "], [" loss ", " 1 "],  # in step order
+                                                           [" backward ", " 0 "], [" backward ", " 1 "]]
+    assert all(line.endswith("| 0 % | host |") for line in by_phase)  # no kernel: the host's alone
 
 
 def _kernel_summary(wall: float, busy: float) -> dict:
