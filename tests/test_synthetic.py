@@ -138,6 +138,20 @@ def test_worker_processes_write_the_same_capture(tmp_path, cfg):
     assert all((one / rel).read_bytes() == (two / rel).read_bytes() for rel in images)
 
 
+@pytest.mark.slow  # spawns an interpreter that imports torch
+def test_render_workers_start_with_one_blas_thread_and_leave_this_process_alone(monkeypatch):
+    import os
+
+    from pig.data.synthetic.capture import WORKER_THREAD_LIMITS, worker_pool
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "7")
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    with worker_pool(1, (None, None, None, None, "unused", 1, 90)) as pool:
+        seen = {name: pool.apply(os.getenv, (name,)) for name in WORKER_THREAD_LIMITS}
+    assert seen == WORKER_THREAD_LIMITS
+    assert os.environ["OMP_NUM_THREADS"] == "7" and "OPENBLAS_NUM_THREADS" not in os.environ
+
+
 def test_existing_output_is_refused_unless_it_is_a_generated_capture(tmp_path, capsys):
     foreign = tmp_path / "subject00"
     foreign.mkdir()

@@ -6,9 +6,9 @@
 # raw results under $OUT (results.tar: every fit's output, train log and JSON), then committed under
 # benchmarks/gpu_runs/runNN.
 #   a SEED BUDGET_S VARIANT...   set-up, the subject (24 cameras x 10 frames at 1330 x 1150, the preset's 16
-#                                processes: 203-231 s on the 64-CPU 4-GPU hosts; 32 took 219 s there, run31, and 334 s
-#                                on a 32-CPU host), then the first round: one fit per GPU, started detached from a
-#                                copy under /tmp. A VARIANT may carry
+#                                processes: 203-231 s on the 64-CPU 4-GPU hosts while each spun a BLAS thread per
+#                                core, ~60-90 s predicted with one: benchmarks/NOTES.md), then the first round: one
+#                                fit per GPU, started detached from a copy under /tmp. A VARIANT may carry
 #                                overrides after a colon (fit_gpu.py --variant), e.g. pig:fit.average_decay=0.99; a
 #                                fit with a weight average is evaluated twice, the average and then its last iterate
 #                                (fit_gpu.py --evaluate-iterate: ~100 s more at the end of the round)

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import functools
 import multiprocessing
+import multiprocessing.pool
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -210,6 +212,29 @@ def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = Fals
     return out_dir
 
 
+# Set for the render workers as they start: one BLAS (and OpenMP) thread each. OpenBLAS otherwise starts a thread per
+# core of the host in every worker, and its idle threads spin: on a 64-core host 16 workers spent 57 CPU-minutes
+# on 240 views, ~14 CPU-s a view against ~3 in one single-threaded process (benchmarks/NOTES.md, "Synthetic capture
+# generator"). The workers already split the views across the cores.
+WORKER_THREAD_LIMITS = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def worker_pool(workers: int, init: tuple) -> multiprocessing.pool.Pool:
+    """`workers` spawned render processes (spawn, not fork: the parent holds torch's thread pools, which do not
+    survive a fork), started with WORKER_THREAD_LIMITS in their environment; this process's is left as it was."""
+    context = multiprocessing.get_context("spawn")
+    saved = {name: os.environ.get(name) for name in WORKER_THREAD_LIMITS}
+    os.environ.update(WORKER_THREAD_LIMITS)
+    try:
+        return context.Pool(workers, initializer=_init_worker, initargs=init)  # the workers start here
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name)
+            else:
+                os.environ[name] = value
+
+
 def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progress: bool) -> None:
     tasks = _tasks(cfg)
     init = (scene.appearance, scene.cameras, scene.body_vertices, scene.garment_vertices, str(root), cfg.supersample,
@@ -221,9 +246,7 @@ def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progres
         for task in tasks:
             bar.update(_render_and_write(task))
     else:
-        # spawn, not fork: the parent holds torch's thread pools, which do not survive a fork.
-        context = multiprocessing.get_context("spawn")
-        with context.Pool(workers, initializer=_init_worker, initargs=init) as pool:
+        with worker_pool(workers, init) as pool:
             for views in pool.imap_unordered(_render_and_write, tasks):
                 bar.update(views)
     bar.close()
