@@ -1,5 +1,5 @@
 """Render and evaluate at the THuman4 protocol's scale: wall time, views/s, peak host/GPU memory, bytes per stage,
-and where an evaluate second goes.
+and where a render and an evaluate second go.
 
 Builds a capture of THuman4's dimensions (24 cameras, 2000 training + 500 novel-pose frames, 1330 x 1150).
 By default `--generated-frames` frames are generated and preprocessed, the others repeat their images by hard
@@ -20,6 +20,14 @@ host-to-device copies (float32 from pageable memory as the old stage did, uint8 
 SSIM, LPIPS-VGG (pair, and the render side against cached ground-truth taps) and the FID network, in ms per view;
 with `--lpips-precision` / `--fid-precision` / `--channels-last` (passed to the evaluate stage's preset too) also
 the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views.
+
+`--render-breakdown N` times each part of a render second alone on N novel-pose frames (after one warm-up frame),
+through the render stage's own calls in its order, the device synchronised around each (`render_breakdown`): the
+avatar's pose and decode per frame and LOD, the rasterization of every camera of a frame (one call per image size,
+as the stage batches them), each view's uint8 conversion and device-to-host copy, its encoding on one thread
+(evaluate.render_codec) and the chunk writes; in ms per view (a view: one camera at one frame and LOD) and, for the
+per-frame parts, ms per frame at that LOD; then the stage's device and host (encoding) time per view and the
+views/s bound they imply with evaluate.encode_workers encoding threads.
 
     python benchmarks/eval_scale.py --workdir /tmp/evscale                     # CUDA: paper preset, whole protocol
     python benchmarks/eval_scale.py --workdir /tmp/evscale --device cpu --preset cpu-demo --fraction 0.004 \\
@@ -334,6 +342,105 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     return rows
 
 
+def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: str, frames: int,
+                     scratch: Path) -> tuple[list[dict], dict]:
+    """Milliseconds per view of each part of a render second, each timed alone on `frames` frames of the split (after
+    one warm-up frame), the device synchronised around each, through the render stage's own calls in its order
+    (every LOD of a frame, then the next frame): the avatar's pose and decode per frame and LOD, the rasterization
+    of every camera (one call per image size), each view's uint8 conversion and copy to the host, its encoding
+    (evaluate.render_codec, one thread) and the chunks' writes (one per LOD and camera, of the timed frames, in a
+    temporary folder under `scratch`). A view is one camera at one frame and LOD, as the stage's views/s counts.
+
+    Returns the rows and, for checks, the last frame's views: {(lod, camera): (uint8 image, encoded stream)}."""
+    import tempfile
+
+    from pig.config import load_section, resolve_device
+    from pig.data.capture import Capture
+    from pig.data.render_store import chunk_path, encode_image, write_chunk
+    from pig.render.api import RasterizerConfig
+    from pig.stages.evaluate import EvaluateConfig
+    from pig.stages.render import _to_u8, load_renderer
+
+    data = load_preset(str(preset))
+    cfg = load_section(data, "evaluate", EvaluateConfig)
+    capture = Capture.load(capture_dir, cache_mb=0)
+    cameras = capture.split[split]["cameras"]
+    dev = resolve_device(cfg.device)
+    renderer, _, _ = load_renderer(checkpoint, capture, cameras, dev, load_section(data, "rasterizer", RasterizerConfig))
+    levels = list(range(renderer.model.num_levels))
+    track_splats = (capture_dir / GT_MESHES).is_file()  # the stage then copies each frame's centres and opacities
+    chosen = [int(f) for f in capture.split[split]["frames"]][:frames + 1]
+    timed_frames = chosen[1:] or chosen  # the first warms up (gsplat's and the decoders' first calls)
+    sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)
+    times: dict[str, list[float]] = {}
+
+    def timed(name, work):
+        sync()
+        start = time.perf_counter()
+        result = work()
+        sync()
+        times.setdefault(name, []).append(time.perf_counter() - start)
+        return result
+
+    pose_row = {lod: f"pose + decode avatar, lod{lod}" for lod in levels}
+    raster_row = {lod: f"rasterize {len(cameras)} cameras, lod{lod}" for lod in levels}
+    track_row, copy_row = "splat track to host", "to uint8 + copy to host"
+    encode_row, write_row = f"encode {cfg.render_codec} (1 thread)", f"chunk write ({len(timed_frames)} frames)"
+    streams: dict[tuple[int, str], list[np.ndarray]] = {}
+    last: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
+    for i, frame in enumerate(chosen):
+        for lod in levels:
+            gaussians = timed(pose_row[lod], lambda: renderer.gaussians(frame, lod))
+            if track_splats:
+                timed(track_row, lambda: (gaussians[0].cpu().numpy(), gaussians[3].cpu().numpy()))
+            views = timed(raster_row[lod], lambda: list(renderer.render(frame, lod, gaussians=gaussians)))
+            for cam, result, c in views:
+                image = timed(copy_row, lambda: _to_u8(result.color[c]))
+                stream = timed(encode_row, lambda: encode_image(image, cfg.render_codec))
+                if frame in timed_frames:
+                    streams.setdefault((lod, cam), []).append(stream)
+                    last[(lod, cam)] = image, stream
+            del views, gaussians
+        if i == 0 and len(chosen) > 1:
+            times.clear()
+    with tempfile.TemporaryDirectory(dir=scratch, prefix=".render-breakdown-") as folder:
+        for (lod, cam), encoded in streams.items():
+            path = chunk_path(Path(folder) / f"lod{lod}", cam, timed_frames[0])
+            path.parent.mkdir(parents=True, exist_ok=True)
+            timed(write_row, lambda: write_chunk(path, timed_frames, encoded, cfg.render_codec, cam, lod))
+
+    per_frame = {*pose_row.values(), *raster_row.values(), track_row}
+    lods, n, c = len(levels), len(timed_frames), len(cameras)
+    # Views each row was timed over: the per-LOD rows over their LOD's views, the others over every LOD's.
+    views_of = {name: n * c * (1 if name in pose_row.values() or name in raster_row.values() else lods)
+                for name in times}
+    order = [*pose_row.values(), *raster_row.values(), track_row, copy_row, encode_row, write_row]
+    rows = []
+    for name in [name for name in order if name in times]:
+        values = times[name]
+        row = {"part": name, "ms_per_view": 1000 * sum(values) / views_of[name]}
+        if name in per_frame:
+            row["ms_per_frame"] = 1000 * sum(values) / len(values)
+        rows.append(row)
+    device_ms = 1000 * sum(sum(v) for k, v in times.items() if k not in (encode_row, write_row)) / (n * c * lods)
+    host_ms = 1000 * (sum(times[encode_row]) + sum(times[write_row])) / (n * c * lods)
+    workers = cfg.encode_workers
+    bound = 1000 / max(device_ms, host_ms / workers)
+    print(f"\nwhere a render second goes: {n} frames of {split} x {c} cameras x {lods} LODs, device {dev}, "
+          f"{capture.cameras[cameras[0]].width} x {capture.cameras[cameras[0]].height}, each part alone")
+    print(f"{'part':<44} {'ms/view':>9} {'ms/frame':>9}")
+    for row in rows:
+        frame_ms = f"{row['ms_per_frame']:>9.2f}" if "ms_per_frame" in row else f"{'':>9}"
+        print(f"{row['part']:<44} {row['ms_per_view']:>9.2f} {frame_ms}")
+    print(f"render stage, per view: device {device_ms:.2f} ms, host {host_ms:.2f} ms on one thread "
+          f"({host_ms / workers:.2f} ms on {workers} encode workers): at most {bound:.1f} views/s")
+    rows += [{"part": "render stage per view: device", "ms_per_view": device_ms},
+             {"part": "render stage per view: host, one thread", "ms_per_view": host_ms},
+             {"part": f"render stage per view: host on {workers} encode workers", "ms_per_view": host_ms / workers},
+             {"part": "render stage bound", "views_per_s": bound}]
+    return rows, last
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", type=Path, required=True)
@@ -365,6 +472,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="one evaluate process per LOD (the workflow before one pass per split)")
     parser.add_argument("--breakdown-batches", type=int, default=0,
                         help="also time each part of an evaluate second alone on this many novel-pose batches")
+    parser.add_argument("--render-breakdown", type=int, default=0,
+                        help="also time each part of a render second alone on this many novel-pose frames")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
@@ -440,8 +549,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.breakdown_batches:
         os.environ["TORCH_HOME"] = str(torch_home)  # the stand-in weights
         parts = breakdown(capture, results / "renders" / "novel_pose", preset, args.device, args.breakdown_batches)
+    render_parts = []
+    if args.render_breakdown:
+        render_parts, _ = render_breakdown(capture, variant / "avatar.pt", preset, "novel_pose", args.render_breakdown,
+                                           results)
     if args.json:
         args.json.write_text(json.dumps({"rows": rows, "codecs": codecs, "breakdown": parts,
+                                         "render_breakdown": render_parts,
                                          "args": {k: str(v) for k, v in vars(args).items()}}, indent=1))
     return 0
 

@@ -137,6 +137,18 @@ class SplitRenderer:
         return float(np.mean(times))
 
 
+def load_renderer(checkpoint: Path, capture, cameras: list[str], device: torch.device,
+                  rasterizer: RasterizerConfig) -> tuple[SplitRenderer, dict, str]:
+    """(renderer of `cameras`, the fit's loss terms, the checkpoint's SHA-256) from one read of `checkpoint`: a fit
+    renaming a new checkpoint into place meanwhile cannot pair the renders with the new one's hash. Refuses an
+    avatar of another capture."""
+    from pig.avatar.checkpoint import read_avatar
+
+    model, terms, checkpoint_sha256 = read_avatar(checkpoint, device, capture)
+    bake_preconditioning(model)
+    return SplitRenderer(model, capture, cameras, device, rasterizer), terms, checkpoint_sha256
+
+
 def _to_u8(color: torch.Tensor) -> np.ndarray:
     """(H, W, 3) float in [0, 1] -> uint8, rounded as `write_png` rounds (half to even), on the render's device."""
     return (color.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
@@ -152,7 +164,6 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     `cfg.encode_workers` threads. A killed run leaves its finished chunks beside `output`; a rerun with the same
     checkpoint, capture and settings renders only the missing ones. `every_view` (default `cfg.every_view`) also
     writes every view as {frame:08d}.png with alpha and depth in {frame:08d}.exr."""
-    from pig.avatar.checkpoint import read_avatar
     from pig.avatar.losses import fit_note
     from pig.data.capture import Capture
 
@@ -163,12 +174,9 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
         raise KeyError(f"{capture_dir}/split.json: no split {split!r}; found {sorted(capture.split)}")
     cameras, frames = capture.split[split]["cameras"], [int(f) for f in capture.split[split]["frames"]]
     device = resolve_device(cfg.device)
-    # One read of the file: a fit renaming a new checkpoint into place meanwhile cannot pair these renders with the
-    # new one's hash. Refuses an avatar of another capture.
-    model, terms, checkpoint_sha256 = read_avatar(checkpoint, device, capture)
+    renderer, terms, checkpoint_sha256 = load_renderer(checkpoint, capture, cameras, device, rasterizer)
+    model = renderer.model
     note = fit_note(terms["lpips"])  # passed on to the evaluate stage's summaries and the tables
-    bake_preconditioning(model)
-    renderer = SplitRenderer(model, capture, cameras, device, rasterizer)
     track_splats = (capture_dir / GT_MESHES).is_file()  # for the evaluate stage's geometry error and drift
     levels = list(range(model.num_levels))
     chunks = [frames[i:i + cfg.chunk_frames] for i in range(0, len(frames), cfg.chunk_frames)]
