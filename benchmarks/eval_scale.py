@@ -232,6 +232,23 @@ def codec_table(split_dir: Path, count: int) -> list[dict]:
     return rows
 
 
+class PartTimer:
+    """Times each call of `timed(name, work)` alone: the device synchronised before and after; `times[name]` holds
+    the seconds of each call."""
+
+    def __init__(self, device: torch.device):
+        self.sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+        self.times: dict[str, list[float]] = {}
+
+    def __call__(self, name: str, work):
+        self.sync()
+        start = time.perf_counter()
+        result = work()
+        self.sync()
+        self.times.setdefault(name, []).append(time.perf_counter() - start)
+        return result
+
+
 def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, batches: int) -> list[dict]:
     """Milliseconds per view of each part of an evaluate second, each timed alone on `batches` batches (the preset's
     evaluate.batch_size) of the split's views, the device synchronised around each: decoding (one thread), the
@@ -259,16 +276,8 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
         lpips_low = LPIPS(cfg.lpips_net, precision=cfg.lpips_precision, channels_last=cfg.channels_last).to(dev)
         inception_low = InceptionFeatures(precision=cfg.fid_precision, channels_last=cfg.channels_last).to(dev)
     lpips_gap = 0.0
-    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    times: dict[str, list[float]] = {}
-
-    def timed(name, work):
-        sync()
-        start = time.perf_counter()
-        result = work()
-        sync()
-        times.setdefault(name, []).append(time.perf_counter() - start)
-        return result
+    timed = PartTimer(dev)
+    times = timed.times
 
     chosen = view_batches(capture, split_dir.name, cfg.batch_size)[:batches + 1]
     for b, views in enumerate(chosen):  # the first batch warms up (cuDNN's choice of algorithms), not counted
@@ -371,16 +380,8 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
     track_splats = (capture_dir / GT_MESHES).is_file()  # the stage then copies each frame's centres and opacities
     chosen = [int(f) for f in capture.split[split]["frames"]][:frames + 1]
     timed_frames = chosen[1:] or chosen  # the first warms up (gsplat's and the decoders' first calls)
-    sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)
-    times: dict[str, list[float]] = {}
-
-    def timed(name, work):
-        sync()
-        start = time.perf_counter()
-        result = work()
-        sync()
-        times.setdefault(name, []).append(time.perf_counter() - start)
-        return result
+    timed = PartTimer(dev)
+    times = timed.times
 
     pose_row = {lod: f"pose + decode avatar, lod{lod}" for lod in levels}
     raster_row = {lod: f"rasterize {len(cameras)} cameras, lod{lod}" for lod in levels}
