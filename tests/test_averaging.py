@@ -190,6 +190,13 @@ def test_fit_evaluates_and_saves_the_average_restarts_it_at_the_grid_switch_and_
     a, b = (load_avatar(root / training.ITERATE_FILE).state_dict() for root in (tmp_path / "full", tmp_path / "resumed"))
     assert all(torch.equal(a[key], b[key]) for key in a)
 
+    # The average does not feed back into the training: the same fit without it ends at the same iterate, bit for
+    # bit (what lets benchmarks/equal_time.py count an averaged fit's iterate as a plain fit).
+    plain = training.fit(small_capture, tmp_path / "plain", _preset(tmp_path, iterations=iterations, eval_every=5,
+                                                                     checkpoint_minutes=0.0))
+    a, b = load_avatar(tmp_path / "full" / training.ITERATE_FILE).state_dict(), load_avatar(plain).state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
+
     # A fit without an average in the same folder leaves no iterate of the earlier fit beside its avatar.pt.
     training.fit(small_capture, tmp_path / "full", _preset(tmp_path, iterations=2, eval_every=5), overwrite=True)
     assert not (tmp_path / "full" / training.ITERATE_FILE).exists()
