@@ -68,14 +68,12 @@ def load_fits(manifest: Path) -> list[dict]:
 def iterate_fit(root: Path, fit: dict) -> dict:
     """The plain variant's fit that an averaged fit's last iterate is: its own final metrics, and the held-out curve
     of the iterate (the logged PSNR before the average started, the iterate's beside the average's after)."""
-    record = json.loads((root / fit["json"]).read_text())["results"]
-    [result] = [r for r in record if r.get("budget_iterate")]
     curve = [(float(r["train_s"]), float(r["heldout_psnr_iterate"] or r["heldout_psnr"]))
              for r in log_rows(root, fit) if r["heldout_psnr"]]
-    plain = {key: value for key, value in fit.items() if key not in ("label", "overrides")}
-    return {**plain, "variant": result["variant"], "replicate": fit["iterate_replicate"],
-            "iterate_of": f"{fit['variant']} #{fit['replicate']}",
-            "final": finest_levels(result["budget_iterate"]), "curve": curve}
+    plain = {key: value for key, value in fit.items() if key not in ("label", "overrides", "final_iterate")}
+    return {**plain, "replicate": fit["iterate_replicate"],
+            "iterate_of": f"{fit.get('label', fit['variant'])} #{fit['replicate']}", "final": fit["final_iterate"],
+            "curve": curve}
 
 
 def finest_levels(budget: dict) -> dict:
@@ -93,7 +91,9 @@ def fit_from_json(root: Path, entry: dict) -> dict:
     record = json.loads((root / entry["json"]).read_text())["results"]
     [result] = [r for r in record if r.get("budget")]
     budget = result["budget"]
-    return {**entry, "variant": result["variant"], "final": finest_levels(budget), "iterations": budget["iterations"],
+    iterate = {"final_iterate": finest_levels(result["budget_iterate"])} if "budget_iterate" in result else {}
+    return {**entry, **iterate, "variant": result["variant"], "final": finest_levels(budget),
+            "iterations": budget["iterations"],
             "train_s": budget["train_s"], "compile_s": budget.get("compile_s", math.nan),
             "ms_per_iteration": result["ms_per_iteration"], "curve": [tuple(p) for p in result["heldout_by_time"]]}
 

@@ -68,15 +68,7 @@ def chrome_trace_rows(events: list[dict]) -> list[Row]:
 
 def union_length(intervals: Iterable[tuple[float, float]]) -> float:
     """The length of the union of half-open intervals [start, end) (overlaps counted once, empty ones ignored)."""
-    total, reach = 0.0, None
-    for start, end in sorted((s, e) for s, e in intervals if e > s):
-        if reach is None or start > reach:
-            total += end - start
-            reach = end
-        elif end > reach:
-            total += end - reach
-            reach = end
-    return total
+    return float(sum(end - start for start, end in merged(intervals)))
 
 
 def clip(intervals: Iterable[tuple[float, float]], lo: float, hi: float) -> list[tuple[float, float]]:

@@ -10,18 +10,13 @@ On a host with many cores and several workers that is most of the generation (be
 from __future__ import annotations
 
 import argparse
-import resource
 import tempfile
 import time
 from pathlib import Path
 
 import pig.data.synthetic.capture as capture
 from pig.data.synthetic import SyntheticConfig, generate_capture
-
-
-def cpu_seconds() -> float:
-    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+from synthetic_generate import cpu_seconds
 
 
 def main() -> None:

@@ -594,10 +594,11 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         parallel.check_replicas(model, f"at the end (iteration {iteration})")
         if not lead:
             return avatar_path
+    iterate_path = output_dir / ITERATE_FILE
     if average is not None and average.started:
-        checkpoint(avatar_path.with_name(ITERATE_FILE), iteration, clock)
+        checkpoint(iterate_path, iteration, clock)
     else:  # an earlier fit's iterate in this fit's folder would not belong to this avatar.pt
-        avatar_path.with_name(ITERATE_FILE).unlink(missing_ok=True)
+        iterate_path.unlink(missing_ok=True)
     with average.applied() if average is not None else nullcontext():  # avatar.pt holds the weights evaluated
         checkpoint(avatar_path, iteration, clock)
     state_path.unlink(missing_ok=True)
