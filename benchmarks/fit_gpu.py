@@ -56,9 +56,11 @@ from torch._dynamo.utils import counters
 
 from pig.config import load_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
+from pig.data.synthetic.capture import RenderTimeline
 from pig._io import write_json
 from pig.avatar.training import ITERATE_FILE, fit
 from pig.stages.preprocess import main as preprocess
+from synthetic_generate import timeline_summary, timeline_table
 
 # Submodules of the avatar timed inside the "model" phase (the outermost one when they nest).
 MODULES = {"LatentGrid": "model.grid", "PreconditionedTensor": "model.anchor_solve", "BodyModel": "model.body",
@@ -350,8 +352,13 @@ def main(argv=None) -> int:
     if not (args.reuse_capture and capture.exists()):
         shutil.rmtree(args.workdir, ignore_errors=True)
         t0 = time.perf_counter()
-        raw = generate_capture(args.workdir / "raw", syn, progress=False)
+        timeline = RenderTimeline()
+        raw = generate_capture(args.workdir / "raw", syn, progress=False, timeline=timeline)
         stamps["generate_s"] = time.perf_counter() - t0
+        workers = timeline_summary(timeline)  # where generate_s went: worker start-up, busy share, parts
+        print(f"generate: {stamps['generate_s']:.1f} s\n{timeline_table(workers)}", flush=True)
+        stamps.update({f"generate_{key}": float(workers[key]) for key in
+                       ("ready_last_s", "first_task_last_s", "idle_tail_s", "busy_share", "rays_computed")})
         t0 = time.perf_counter()
         preprocess(["--input", str(raw), "--output", str(capture), "--preset", args.preset,
                     "--format", "thuman4", "--body-model", str(raw / "body_model.npz"), "--no-progress"])

@@ -9,20 +9,64 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import resource
+import statistics
 import tempfile
 import time
+from collections import defaultdict
 from pathlib import Path
 
 from pig.body.standin import make_standin_arrays
 from pig.config import load_preset, load_section
 from pig.data.synthetic import SyntheticConfig, build_scene, generate_capture
 from pig.data.synthetic import render as synthetic_render
+from pig.data.synthetic.capture import RenderTimeline
 from pig.data.synthetic.render import render_frame
 
 
 def cpu_seconds() -> float:
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+PARTS = ("scene", "rays", "intersect", "shade", "compose", "write")
+
+
+def timeline_summary(timeline: RenderTimeline) -> dict[str, float]:
+    """The render workers' timeline in numbers: seconds from `timeline.started` (the parent starting the workers),
+    CPU-free waits included; parts in worker-seconds summed over the tasks."""
+    wall = timeline.ended - timeline.started
+    ready = {r["pid"]: r["ready"] - timeline.started for r in timeline.tasks}
+    first = defaultdict(lambda: float("inf"))
+    last = defaultdict(float)
+    for r in timeline.tasks:
+        first[r["pid"]] = min(first[r["pid"]], r["start"] - timeline.started)
+        last[r["pid"]] = max(last[r["pid"]], r["end"] - timeline.started)
+    busy = sum(r["end"] - r["start"] for r in timeline.tasks)
+    parts = {name: sum(r["parts"].get(name, 0.0) for r in timeline.tasks) for name in PARTS}
+    summary = {
+        "workers": timeline.workers, "workers_used": len(ready), "tasks": len(timeline.tasks),
+        "views": sum(r["views"] for r in timeline.tasks), "wall_s": wall,
+        "ready_first_s": min(ready.values()), "ready_median_s": statistics.median(ready.values()),
+        "ready_last_s": max(ready.values()), "first_task_last_s": max(first.values()),
+        "idle_tail_s": wall - min(last.values()),  # from the first worker to run out of tasks to the end
+        "busy_share": busy / (timeline.workers * wall), "task_s_mean": busy / len(timeline.tasks),
+        "task_s_max": max(r["end"] - r["start"] for r in timeline.tasks),
+        "rays_computed": sum(r["parts"].get("rays_computed", 0) for r in timeline.tasks),
+        "rays_cached": sum(r["parts"].get("rays_cached", 0) for r in timeline.tasks),
+    }
+    summary.update({f"{name}_s": seconds for name, seconds in parts.items()})
+    summary["other_s"] = busy - sum(parts.values())
+    return summary
+
+
+def timeline_table(summary: dict[str, float]) -> str:
+    """`timeline_summary` as a two-column table, worker-seconds per part with their share of the tasks' time."""
+    busy = summary["task_s_mean"] * summary["tasks"]
+    rows = [f"| {key} | {value:.3g} |" if isinstance(value, float) else f"| {key} | {value} |"
+            for key, value in summary.items() if not key.endswith("_s") or key[:-2] not in PARTS + ("other",)]
+    rows += [f"| {name} worker-s | {summary[name + '_s']:.1f} ({100 * summary[name + '_s'] / busy:.0f} %) |"
+             for name in PARTS + ("other",)]
+    return "\n".join(["| render workers | |", "|---|---|", *rows])
 
 
 def timed(fn):

@@ -2,6 +2,11 @@
 determinism, and a garment that is off the body and moves beyond skinning."""
 import dataclasses
 import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -17,6 +22,7 @@ from pig.data.formats import open_capture
 from pig.data.synthetic import SyntheticConfig, SyntheticError, build_scene, generate_capture
 from pig.data.synthetic import capture as synthetic_capture
 from pig.data.synthetic.garment import AROUND
+from pig.data.synthetic.render import RAY_CACHE_BYTES
 from pig.data.synthetic.rig import pixel_rays
 from pig.data.synthetic.texture import ValueNoise, body_albedo, garment_albedo
 from pig.stages import generate
@@ -132,16 +138,74 @@ def test_deterministic_per_seed(capture, tmp_path, cfg, scene):
 def test_worker_processes_write_the_same_capture(tmp_path, cfg):
     small = dataclasses.replace(cfg, cameras=3, frames=2, width=40, height=32)
     one = generate_capture(tmp_path / "one", small, progress=False)
-    two = generate_capture(tmp_path / "two", dataclasses.replace(small, workers=2), progress=False)
+    timeline = synthetic_capture.RenderTimeline()
+    two = generate_capture(tmp_path / "two", dataclasses.replace(small, workers=2), progress=False, timeline=timeline)
     images = sorted(p.relative_to(one) for p in one.rglob("*.jpg"))
     assert len(images) == 2 * 3 * 2
     assert all((one / rel).read_bytes() == (two / rel).read_bytes() for rel in images)
+    # The timeline: every view once, from the workers (not this process), each task after its worker was ready.
+    views = [(f, c) for r in timeline.tasks for f in r["frames"] for c in r["cameras"]]
+    assert sorted(views) == [(f, c) for f in range(2) for c in range(3)]
+    assert timeline.workers == 2 and 1 <= len({r["pid"] for r in timeline.tasks}) <= 2
+    assert os.getpid() not in {r["pid"] for r in timeline.tasks}
+    assert all(timeline.started <= r["ready"] <= r["start"] <= r["end"] <= timeline.ended for r in timeline.tasks)
+    assert sum(r["parts"].get("rays_computed", 0) + r["parts"].get("rays_cached", 0) for r in timeline.tasks) == 6
+
+
+@pytest.mark.parametrize("cameras, frames, width, height, supersample, workers", [
+    (24, 10, 1330, 1150, 2, 16), (24, 120, 1330, 1150, 2, 16), (24, 10, 1330, 1150, 2, 32), (7, 5, 1330, 1150, 2, 3),
+    (12, 24, 256, 256, 1, 2), (60, 3, 2048, 1500, 1, 64), (3, 2, 40, 32, 1, 2), (1, 1, 8, 8, 1, 4)])
+def test_render_tasks_cover_every_view_once_in_groups_that_fit_the_ray_cache(cameras, frames, width, height,
+                                                                             supersample, workers):
+    run = SyntheticConfig(cameras=cameras, frames=frames, width=width, height=height, supersample=supersample,
+                          workers=workers)
+    tasks = synthetic_capture._tasks(run)
+    views = [(f, c) for task_frames, cams in tasks for f in task_frames for c in cams]
+    assert sorted(views) == [(f, c) for f in range(frames) for c in range(cameras)]
+    ray_bytes = width * height * supersample**2 * 3 * 4
+    assert all(len(cams) == 1 or len(cams) * ray_bytes <= RAY_CACHE_BYTES for _, cams in tasks)
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_render_tasks_of_the_gpu_holds_compute_each_cameras_rays_at_most_twice_in_one_round(supersample):
+    # benchmarks/fit_gpu.py's subject: 24 cameras x 10 frames at the paper's size (supersample 1 unless asked), 16
+    # workers. A worker takes tasks in any order, so a task computes its cameras' rays (about a view's work each);
+    # the old split computed rays for every view (20 tasks of one frame by 14 or 10 cameras at supersample 1, 80 of
+    # one frame by 3 at 2), in 2 and 5 rounds.
+    run = SyntheticConfig(cameras=24, frames=10, width=1330, height=1150, supersample=supersample, workers=16)
+    tasks = synthetic_capture._tasks(run)
+    assert sum(len(cams) for _, cams in tasks) <= 2 * run.cameras
+    assert len(tasks) == run.workers  # one round of equal tasks: no worker waits on a tail
+    assert len({(len(frames), len(cams)) for frames, cams in tasks}) == 1
+
+
+@pytest.mark.slow  # spawns interpreters that import torch
+def test_render_workers_do_not_import_the_callers_main_module(tmp_path):
+    # spawn re-imports the main script in every worker (as __mp_main__); benchmarks/fit_gpu.py's imports torch's
+    # compiler and the fitting code, which the workers do not need.
+    script = tmp_path / "caller.py"
+    script.write_text(textwrap.dedent(f"""
+        import pathlib, sys
+        if __name__ != "__main__":
+            pathlib.Path({str(tmp_path / "imported")!r}).write_text(__name__)
+        from pig.data.synthetic import SyntheticConfig, generate_capture
+        if __name__ == "__main__":
+            cfg = SyntheticConfig(cameras=2, frames=2, width=16, height=16, workers=2)
+            generate_capture(pathlib.Path({str(tmp_path / "subject")!r}), cfg, progress=False)
+            main = sys.modules["__main__"]
+            print(main.__file__, main.__spec__)
+    """))
+    source = str(Path(synthetic_capture.__file__).parents[3])  # this checkout's pig, not an installed one
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": source})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [str(script), "None"]  # this process's main module as it was
+    assert len(list((tmp_path / "subject" / "images").rglob("*.jpg"))) == 4
+    assert not (tmp_path / "imported").exists()
 
 
 @pytest.mark.slow  # spawns an interpreter that imports torch
 def test_render_workers_start_with_one_blas_thread_and_leave_this_process_alone(monkeypatch):
-    import os
-
     from pig.data.synthetic.capture import WORKER_THREAD_LIMITS, worker_pool
 
     monkeypatch.setenv("OMP_NUM_THREADS", "7")

@@ -6,10 +6,13 @@ per-frame meshes kept for geometry error; see DESIGN.md section 4.
 from __future__ import annotations
 
 import functools
+import math
 import multiprocessing
 import multiprocessing.pool
 import os
-from dataclasses import dataclass
+import sys
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -150,33 +153,74 @@ _WORKER: dict = {}
 
 def _init_worker(appearance, cameras, body, garment, root, supersample, quality) -> None:
     _WORKER.update(appearance=appearance, cameras=cameras, body=body, garment=garment, root=Path(root),
-                   supersample=supersample, quality=quality)
+                   supersample=supersample, quality=quality, ready=time.perf_counter())
     cv2.setNumThreads(1)
 
 
-def _render_and_write(task: tuple[list[int], list[int]]) -> int:
-    """Render and write the views of some frames seen by some cameras; returns the number of views."""
+def _receive_inputs(inputs: multiprocessing.Queue) -> None:
+    _init_worker(*inputs.get())
+
+
+def _render_and_write(task: tuple[list[int], list[int]]) -> dict:
+    """Render and write the views of some frames seen by some cameras; returns the task's record for a
+    RenderTimeline (its views, its worker, when it ran and its seconds per part)."""
+    start = time.perf_counter()
     frames, camera_ids = task
     w = _WORKER
     cameras = [w["cameras"][c] for c in camera_ids]
+    parts: dict[str, float] = {}
     for frame in frames:
         for camera, rgb, mask in render_frame(w["appearance"], w["body"][frame], w["garment"][frame], cameras,
-                                              w["supersample"]):
+                                              w["supersample"], parts):
+            written = time.perf_counter()
             name = f"{frame:08d}.jpg"
             image = cv2.cvtColor((rgb * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
             _imwrite(w["root"] / "images" / camera.name / name, image, w["quality"])
             _imwrite(w["root"] / "masks" / camera.name / name, mask.astype(np.uint8) * 255, w["quality"])
-    return len(frames) * len(cameras)
+            parts["write"] = parts.get("write", 0.0) + time.perf_counter() - written
+    return {"views": len(frames) * len(cameras), "frames": frames, "cameras": camera_ids, "pid": os.getpid(),
+            "ready": w["ready"], "start": start, "end": time.perf_counter(), "parts": parts}
+
+
+@dataclass
+class RenderTimeline:
+    """Where the render workers' time went: one record per task (_render_and_write), in the order they ended.
+
+    Times are time.perf_counter() values, one clock for every process of a Linux host; `started` is when the parent
+    began starting the workers, `ended` when the last task came back."""
+
+    workers: int = 0
+    started: float = 0.0
+    ended: float = 0.0
+    tasks: list[dict] = field(default_factory=list)
+
+
+# The cost model that picks the tasks (benchmarks/NOTES.md, "Synthetic capture generator: workers start together"),
+# in the time to intersect, shade and write one ray (a supersample) of a view, measured in one process: computing a
+# camera's rays costs RAY_COST times a view of it, a frame's scene (mesh, normals, Embree's BVH) SCENE_COST rays.
+RAY_COST = 1.3
+SCENE_COST = 7.5e4
 
 
 def _tasks(cfg: SyntheticConfig) -> list[tuple[list[int], list[int]]]:
-    """(frames, cameras) work items: camera groups whose rays fit a worker's cache, frames split ~4 items per worker."""
-    ray_bytes = cfg.width * cfg.height * cfg.supersample**2 * 3 * 4
-    group = max(1, min(cfg.cameras, RAY_CACHE_BYTES // ray_bytes))
+    """(frames, cameras) work items: each camera group's rays are computed once per item (a worker takes items in any
+    order, so an item cannot count on the rays of its last one), each frame's scene once per item; the group (whose
+    rays must fit a worker's cache) and the frame block are chosen to end soonest, modelled as rounds of equal items
+    over the workers. Every (frame, camera) view is in exactly one item."""
+    rays = cfg.width * cfg.height * cfg.supersample**2
+    largest_group = max(1, min(cfg.cameras, RAY_CACHE_BYTES // (rays * 3 * 4)))
+    best = None
+    for group in range(1, largest_group + 1):
+        for block in range(1, cfg.frames + 1):
+            items = math.ceil(cfg.cameras / group) * math.ceil(cfg.frames / block)
+            item_cost = group * RAY_COST * rays + block * (SCENE_COST + group * rays)
+            key = (math.ceil(items / cfg.workers) * item_cost, items * item_cost)  # then the least work in all
+            if best is None or key < best[0]:
+                best = key, group, block
+    _, group, block = best
     camera_groups = [list(range(c, min(c + group, cfg.cameras))) for c in range(0, cfg.cameras, group)]
-    step = max(1, round(cfg.frames * len(camera_groups) / (4 * cfg.workers)))
-    frame_groups = [list(range(f, min(f + step, cfg.frames))) for f in range(0, cfg.frames, step)]
-    return [(frames, cams) for frames in frame_groups for cams in camera_groups]
+    frame_blocks = [list(range(f, min(f + block, cfg.frames))) for f in range(0, cfg.frames, block)]
+    return [(frames, cams) for frames in frame_blocks for cams in camera_groups]
 
 
 def _imwrite(path: Path, image: np.ndarray, quality: int) -> None:
@@ -184,12 +228,14 @@ def _imwrite(path: Path, image: np.ndarray, quality: int) -> None:
         raise OSError(f"could not write {path}")
 
 
-def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = False, progress: bool = True) -> Path:
+def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = False, progress: bool = True,
+                     timeline: RenderTimeline | None = None) -> Path:
     """Write a THuman4-layout subject folder at `out_dir` (built next to it, then renamed into place).
 
     Contents: images/camXX/%08d.jpg, masks/camXX/%08d.jpg (0/255), calibration.json, smpl_params.npz,
     body_model.npz (the model used) and gt_meshes.npz (true per-frame body and garment vertices).
     An existing `out_dir` is replaced only when it is an earlier generated capture, or with `overwrite`.
+    A `timeline` given receives the render workers' records (benchmarks read it).
     """
     out_dir = claim_dir(out_dir, "generate", overwrite=overwrite)
     scene = build_scene(cfg)
@@ -208,7 +254,7 @@ def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = Fals
             garment_rest_vertices=scene.garment_rest.astype(np.float32), garment_weights=scene.garment_weights,
             garment_hem=scene.hem, times=scene.times, frames=np.arange(cfg.frames),
         )
-        _render_all(scene, tmp, cfg, progress)
+        _render_all(scene, tmp, cfg, progress, timeline)
     return out_dir
 
 
@@ -220,33 +266,58 @@ WORKER_THREAD_LIMITS = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MK
 
 
 def worker_pool(workers: int, init: tuple) -> multiprocessing.pool.Pool:
-    """`workers` spawned render processes (spawn, not fork: the parent holds torch's thread pools, which do not
-    survive a fork), started with WORKER_THREAD_LIMITS in their environment; this process's is left as it was."""
+    """`workers` spawned render processes, initialised with `_init_worker(*init)` and started with
+    WORKER_THREAD_LIMITS in their environment; this process's is left as it was.
+
+    Spawn, not fork: the parent holds torch's thread pools, which do not survive a fork. The workers start together:
+    `init` (the meshes: ~5 MB for 10 frames) reaches them through a queue, since spawn writes a worker's start arguments
+    into a pipe that holds 64 KiB and waits for the worker to read them, which it does only after its imports, so
+    workers with `init` as their arguments started one after another (benchmarks/NOTES.md). Nor do they import this
+    process's main module as spawn would (a script such as benchmarks/fit_gpu.py imports torch's compiler and the
+    fitting code): they run this module's functions only."""
     context = multiprocessing.get_context("spawn")
+    inputs = context.Queue()
+    inputs.cancel_join_thread()  # workers stopped before reading their copy must not keep this process waiting
+    main = sys.modules["__main__"]
     saved = {name: os.environ.get(name) for name in WORKER_THREAD_LIMITS}
     os.environ.update(WORKER_THREAD_LIMITS)
+    spec, path = main.__spec__, main.__dict__.pop("__file__", None)  # what spawn reads to import the main module
+    main.__spec__ = None
     try:
-        return context.Pool(workers, initializer=_init_worker, initargs=init)  # the workers start here
+        pool = context.Pool(workers, initializer=_receive_inputs, initargs=(inputs,))  # the workers start here
     finally:
+        main.__spec__ = spec
+        if path is not None:
+            main.__file__ = path
         for name, value in saved.items():
             if value is None:
                 os.environ.pop(name)
             else:
                 os.environ[name] = value
+    for _ in range(workers):
+        inputs.put(init)
+    return pool
 
 
-def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progress: bool) -> None:
+def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progress: bool,
+                timeline: RenderTimeline | None) -> None:
     tasks = _tasks(cfg)
     init = (scene.appearance, scene.cameras, scene.body_vertices, scene.garment_vertices, str(root), cfg.supersample,
             cfg.jpeg_quality)
     bar = progress_bar(total=cfg.frames * cfg.cameras, desc="render views", unit="view", disable=not progress)
     workers = min(cfg.workers, len(tasks))
-    if workers == 1:
+    timeline = timeline if timeline is not None else RenderTimeline()
+    timeline.workers, timeline.started = workers, time.perf_counter()
+    if workers == 1:  # one frame an item (the progress bar moves), each camera group's frames in a row (cached rays)
         _init_worker(*init)
-        for task in tasks:
-            bar.update(_render_and_write(task))
+        tasks = [([frame], cams) for frames, cams in sorted(tasks, key=lambda task: task[1][0]) for frame in frames]
+        for record in map(_render_and_write, tasks):
+            timeline.tasks.append(record)
+            bar.update(record["views"])
     else:
         with worker_pool(workers, init) as pool:
-            for views in pool.imap_unordered(_render_and_write, tasks):
-                bar.update(views)
+            for record in pool.imap_unordered(_render_and_write, tasks):
+                timeline.tasks.append(record)
+                bar.update(record["views"])
+    timeline.ended = time.perf_counter()
     bar.close()

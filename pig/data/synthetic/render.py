@@ -5,6 +5,7 @@ independent of the project's Gaussian renderer, so it can serve as ground truth 
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,15 +43,23 @@ class SceneAppearance:
 
 
 def render_frame(appearance: SceneAppearance, body: np.ndarray, garment: np.ndarray, cameras: list[RawCamera],
-                 supersample: int = 1):
-    """Yield (camera, rgb (H, W, 3) float in [0, 1], mask (H, W) bool) for each camera, for one posed frame."""
+                 supersample: int = 1, stats: dict[str, float] | None = None):
+    """Yield (camera, rgb (H, W, 3) float in [0, 1], mask (H, W) bool) for each camera, for one posed frame.
+
+    `stats`, if given, accumulates seconds per part (scene: mesh, Embree's BVH and normals; rays, intersect,
+    shade, compose) and the views whose rays were computed or found cached (rays_computed, rays_cached)."""
+    parts = _Parts(stats)
     vertices = np.concatenate([body, garment])
     mesh = trimesh.Trimesh(vertices, appearance.faces, process=False)
     caster = RayMeshIntersector(mesh)
+    caster.intersects_first(np.empty((0, 3)), np.empty((0, 3)))  # builds Embree's BVH now: a part of the scene's time
     normals = _area_weighted_normals(vertices, appearance.faces)
     noise = ValueNoise(appearance.seed)
+    parts.lap("scene")
     for camera in cameras:
-        origin, directions = _cached_rays(camera, supersample)
+        origin, directions, computed = _cached_rays(camera, supersample)
+        parts.count("rays_computed" if computed else "rays_cached")
+        parts.lap("rays")
         shape = directions.shape[:-1]
         directions = directions.reshape(-1, 3)
         colour = np.zeros((len(directions), 3), dtype=np.float32)
@@ -61,12 +70,37 @@ def render_frame(appearance: SceneAppearance, body: np.ndarray, garment: np.ndar
             triangle = caster.intersects_first(np.broadcast_to(origin, rays.shape), rays)
             hit[part] = triangle >= 0
             found = triangle >= 0
+            parts.lap("intersect")
             colour[part][found] = _shade(appearance, vertices, normals, triangle[found], origin, rays[found], noise)
+            parts.lap("shade")
         rows = np.linspace(0, 1, camera.height, dtype=np.float32)[:, None, None, None]
         background = appearance.background[0] * (1 - rows) + appearance.background[1] * rows
         colour = np.where(hit.reshape(shape)[..., None], colour.reshape(shape + (3,)), background)
         coverage = hit.reshape(shape).mean(axis=-1)
-        yield camera, np.clip(colour.mean(axis=2), 0, 1), coverage >= 0.5
+        rgb, mask = np.clip(colour.mean(axis=2), 0, 1), coverage >= 0.5
+        parts.lap("compose")
+        yield camera, rgb, mask
+        parts.restart()  # the caller's time with the view is not this function's
+
+
+class _Parts:
+    """Seconds between laps, added to a dict under the part's name (nothing when there is no dict)."""
+
+    def __init__(self, stats: dict[str, float] | None):
+        self.stats, self.last = stats, time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        if self.stats is not None:
+            now = time.perf_counter()
+            self.stats[name] = self.stats.get(name, 0.0) + now - self.last
+            self.last = now
+
+    def count(self, name: str) -> None:
+        if self.stats is not None:
+            self.stats[name] = self.stats.get(name, 0) + 1
+
+    def restart(self) -> None:
+        self.last = time.perf_counter()
 
 
 CHUNK = 1 << 19  # rays per Embree call
@@ -74,17 +108,18 @@ RAY_CACHE_BYTES = 256 << 20  # cameras are fixed over frames: keep this much of 
 _RAYS: dict = {}
 
 
-def _cached_rays(camera: RawCamera, supersample: int) -> tuple[np.ndarray, np.ndarray]:
+def _cached_rays(camera: RawCamera, supersample: int) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(origin, float32 directions, whether they were computed now rather than found cached)."""
     key = (camera.name, camera.K.tobytes(), camera.R.tobytes(), camera.T.tobytes(), camera.dist.tobytes(),
            camera.width, camera.height, supersample)
     if key in _RAYS:
-        return _RAYS[key]
+        return *_RAYS[key], False
     origin, directions = pixel_rays(camera, supersample)
     rays = (origin, directions.astype(np.float32))
     if sum(d.nbytes for _, d in _RAYS.values()) + rays[1].nbytes > RAY_CACHE_BYTES:
         _RAYS.clear()  # work items group cameras to fit (pig.data.synthetic.capture._tasks): older groups are done
     _RAYS[key] = rays
-    return rays
+    return *rays, True
 
 
 def _area_weighted_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
