@@ -56,7 +56,7 @@ from torch._dynamo.utils import counters
 
 from pig.config import load_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
-from pig.data.synthetic.capture import RenderTimeline
+from pig.data.synthetic.workers import RenderTimeline
 from pig._io import write_json
 from pig.avatar.training import ITERATE_FILE, fit
 from pig.stages.preprocess import main as preprocess

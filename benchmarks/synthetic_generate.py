@@ -19,7 +19,7 @@ from pig.body.standin import make_standin_arrays
 from pig.config import load_preset, load_section
 from pig.data.synthetic import SyntheticConfig, build_scene, generate_capture
 from pig.data.synthetic import render as synthetic_render
-from pig.data.synthetic.capture import RenderTimeline
+from pig.data.synthetic.workers import RenderTimeline
 from pig.data.synthetic.render import render_frame
 
 

@@ -6,8 +6,8 @@ benchmarks/fit_gpu.py takes to import torch's compiler and the fitting code on a
 
 Run it with PYTHONPATH at two checkouts to compare them. Workers that start one after another, each re-importing
 this script (spawn does, as __mp_main__), take ~workers x (import + the generator's own imports); workers that start
-together and leave it alone, ~one generator import (benchmarks/NOTES.md, "Synthetic capture generator: workers
-start together").
+together and leave it alone, ~one worker's imports (pig.data.synthetic.workers: benchmarks/NOTES.md, "Synthetic
+capture generator: workers start together").
 """
 from __future__ import annotations
 

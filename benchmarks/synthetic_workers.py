@@ -1,7 +1,7 @@
 """The synthetic generator's render workers with and without their one-BLAS-thread limit
-(pig.data.synthetic.capture.WORKER_THREAD_LIMITS), alternated in one process: wall and CPU seconds (the parent's
+(pig.data.synthetic.workers.WORKER_THREAD_LIMITS), alternated in one process: wall and CPU seconds (the parent's
 and the workers') of one capture at the paper's image size; or, with --timeline, one capture and where its workers'
-time went (pig.data.synthetic.capture.RenderTimeline: start-up, busy share, seconds per part, rays computed).
+time went (pig.data.synthetic.workers.RenderTimeline: start-up, busy share, seconds per part, rays computed).
 
     python benchmarks/synthetic_workers.py [--cameras 4 --frames 4 --workers 2 --repeats 2 --supersample 2]
         [--timeline]
@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import pig.data.synthetic.capture as capture
+import pig.data.synthetic.workers as render_workers
 from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.data.synthetic.render import RAY_CACHE_BYTES
 from synthetic_generate import cpu_seconds, timeline_summary, timeline_table
@@ -42,7 +43,7 @@ def timelines(cfg: SyntheticConfig, repeats: int) -> None:
     for _ in range(repeats):
         for label, split in (("earlier split", earlier_tasks), ("cost model (capture._tasks)", model)):
             capture._tasks = split
-            timeline = capture.RenderTimeline()
+            timeline = render_workers.RenderTimeline()
             with tempfile.TemporaryDirectory() as folder:
                 wall, cpu = time.perf_counter(), cpu_seconds()
                 generate_capture(Path(folder) / "raw", cfg, progress=False, timeline=timeline)
@@ -69,18 +70,18 @@ def main() -> None:
     if args.timeline:
         timelines(cfg, args.repeats)
         return
-    limits = dict(capture.WORKER_THREAD_LIMITS)
+    limits = dict(render_workers.WORKER_THREAD_LIMITS)
     print(f"{views} views at 1330 x 1150 (supersample {args.supersample}), {args.workers} workers")
     print("| workers' BLAS threads | wall s | CPU s (parent + workers) | CPU s a view |\n|---|---|---|---|")
     for _ in range(args.repeats):
         for label, limit in (("a thread per core (no limit)", {}), ("one (WORKER_THREAD_LIMITS)", limits)):
-            capture.WORKER_THREAD_LIMITS = limit
+            render_workers.WORKER_THREAD_LIMITS = limit
             with tempfile.TemporaryDirectory() as folder:
                 wall, cpu = time.perf_counter(), cpu_seconds()
                 generate_capture(Path(folder) / "raw", cfg, progress=False)
                 wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
             print(f"| {label} | {wall:.1f} | {cpu:.1f} | {cpu / views:.2f} |", flush=True)
-    capture.WORKER_THREAD_LIMITS = limits
+    render_workers.WORKER_THREAD_LIMITS = limits
 
 
 if __name__ == "__main__":

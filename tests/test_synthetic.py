@@ -21,6 +21,7 @@ from pig.config import ConfigError, load_preset, load_section
 from pig.data.formats import open_capture
 from pig.data.synthetic import SyntheticConfig, SyntheticError, build_scene, generate_capture
 from pig.data.synthetic import capture as synthetic_capture
+from pig.data.synthetic import workers as synthetic_workers
 from pig.data.synthetic.garment import AROUND
 from pig.data.synthetic.render import RAY_CACHE_BYTES
 from pig.data.synthetic.rig import pixel_rays
@@ -138,7 +139,7 @@ def test_deterministic_per_seed(capture, tmp_path, cfg, scene):
 def test_worker_processes_write_the_same_capture(tmp_path, cfg):
     small = dataclasses.replace(cfg, cameras=3, frames=2, width=40, height=32)
     one = generate_capture(tmp_path / "one", small, progress=False)
-    timeline = synthetic_capture.RenderTimeline()
+    timeline = synthetic_workers.RenderTimeline()
     two = generate_capture(tmp_path / "two", dataclasses.replace(small, workers=2), progress=False, timeline=timeline)
     images = sorted(p.relative_to(one) for p in one.rglob("*.jpg"))
     assert len(images) == 2 * 3 * 2
@@ -179,6 +180,14 @@ def test_render_tasks_of_the_gpu_holds_compute_each_cameras_rays_at_most_twice_i
     assert len({(len(frames), len(cams)) for frames, cams in tasks}) == 1
 
 
+@pytest.mark.slow  # spawns an interpreter
+def test_render_workers_import_no_torch():
+    # Their imports are most of their start-up (benchmarks/NOTES.md): numpy, OpenCV, trimesh and Embree suffice.
+    with synthetic_workers.worker_pool(1, (None, None, None, None, "unused", 1, 90)) as pool:
+        assert pool.apply(eval, ("sorted({'torch', 'pig.data.synthetic.workers'} & set(__import__('sys').modules))",)) \
+            == ["pig.data.synthetic.workers"]
+
+
 @pytest.mark.slow  # spawns interpreters that import torch
 def test_render_workers_do_not_import_the_callers_main_module(tmp_path):
     # spawn re-imports the main script in every worker (as __mp_main__); benchmarks/fit_gpu.py's imports torch's
@@ -206,7 +215,7 @@ def test_render_workers_do_not_import_the_callers_main_module(tmp_path):
 
 @pytest.mark.slow  # spawns an interpreter that imports torch
 def test_render_workers_start_with_one_blas_thread_and_leave_this_process_alone(monkeypatch):
-    from pig.data.synthetic.capture import WORKER_THREAD_LIMITS, worker_pool
+    from pig.data.synthetic.workers import WORKER_THREAD_LIMITS, worker_pool
 
     monkeypatch.setenv("OMP_NUM_THREADS", "7")
     monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)

@@ -7,12 +7,8 @@ from __future__ import annotations
 
 import functools
 import math
-import multiprocessing
-import multiprocessing.pool
-import os
-import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -30,8 +26,9 @@ from pig._outputs import build_dir, claim_dir
 from .config import SyntheticConfig, SyntheticError
 from .garment import build_skirt, pose_skirt, secondary_motion
 from .motion import Motion
-from .render import RAY_CACHE_BYTES, SceneAppearance, render_frame
+from .render import RAY_CACHE_BYTES, SceneAppearance
 from .rig import make_ring
+from .workers import RenderTimeline, init_worker, render_and_write, worker_pool
 
 
 @functools.lru_cache(maxsize=2)
@@ -148,53 +145,6 @@ def calibration_json(cameras: list[RawCamera]) -> dict:
     }
 
 
-_WORKER: dict = {}
-
-
-def _init_worker(appearance, cameras, body, garment, root, supersample, quality) -> None:
-    _WORKER.update(appearance=appearance, cameras=cameras, body=body, garment=garment, root=Path(root),
-                   supersample=supersample, quality=quality, ready=time.perf_counter())
-    cv2.setNumThreads(1)
-
-
-def _receive_inputs(inputs: multiprocessing.Queue) -> None:
-    _init_worker(*inputs.get())
-
-
-def _render_and_write(task: tuple[list[int], list[int]]) -> dict:
-    """Render and write the views of some frames seen by some cameras; returns the task's record for a
-    RenderTimeline (its views, its worker, when it ran and its seconds per part)."""
-    start = time.perf_counter()
-    frames, camera_ids = task
-    w = _WORKER
-    cameras = [w["cameras"][c] for c in camera_ids]
-    parts: dict[str, float] = {}
-    for frame in frames:
-        for camera, rgb, mask in render_frame(w["appearance"], w["body"][frame], w["garment"][frame], cameras,
-                                              w["supersample"], parts):
-            written = time.perf_counter()
-            name = f"{frame:08d}.jpg"
-            image = cv2.cvtColor((rgb * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
-            _imwrite(w["root"] / "images" / camera.name / name, image, w["quality"])
-            _imwrite(w["root"] / "masks" / camera.name / name, mask.astype(np.uint8) * 255, w["quality"])
-            parts["write"] = parts.get("write", 0.0) + time.perf_counter() - written
-    return {"views": len(frames) * len(cameras), "frames": frames, "cameras": camera_ids, "pid": os.getpid(),
-            "ready": w["ready"], "start": start, "end": time.perf_counter(), "parts": parts}
-
-
-@dataclass
-class RenderTimeline:
-    """Where the render workers' time went: one record per task (_render_and_write), in the order they ended.
-
-    Times are time.perf_counter() values, one clock for every process of a Linux host; `started` is when the parent
-    began starting the workers, `ended` when the last task came back."""
-
-    workers: int = 0
-    started: float = 0.0
-    ended: float = 0.0
-    tasks: list[dict] = field(default_factory=list)
-
-
 # The cost model that picks the tasks (benchmarks/NOTES.md, "Synthetic capture generator: workers start together"),
 # in the time to intersect, shade and write one ray (a supersample) of a view, measured in one process: computing a
 # camera's rays costs RAY_COST times a view of it, a frame's scene (mesh, normals, Embree's BVH) SCENE_COST rays.
@@ -221,11 +171,6 @@ def _tasks(cfg: SyntheticConfig) -> list[tuple[list[int], list[int]]]:
     camera_groups = [list(range(c, min(c + group, cfg.cameras))) for c in range(0, cfg.cameras, group)]
     frame_blocks = [list(range(f, min(f + block, cfg.frames))) for f in range(0, cfg.frames, block)]
     return [(frames, cams) for frames in frame_blocks for cams in camera_groups]
-
-
-def _imwrite(path: Path, image: np.ndarray, quality: int) -> None:
-    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_JPEG_QUALITY, quality]):
-        raise OSError(f"could not write {path}")
 
 
 def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = False, progress: bool = True,
@@ -258,47 +203,6 @@ def generate_capture(out_dir: Path, cfg: SyntheticConfig, overwrite: bool = Fals
     return out_dir
 
 
-# Set for the render workers as they start: one BLAS (and OpenMP) thread each. OpenBLAS otherwise starts a thread per
-# core of the host in every worker, and its idle threads spin: on a 64-core host 16 workers spent 57 CPU-minutes
-# on 240 views, ~14 CPU-s a view against ~3 in one single-threaded process (benchmarks/NOTES.md, "Synthetic capture
-# generator"). The workers already split the views across the cores.
-WORKER_THREAD_LIMITS = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def worker_pool(workers: int, init: tuple) -> multiprocessing.pool.Pool:
-    """`workers` spawned render processes, initialised with `_init_worker(*init)` and started with
-    WORKER_THREAD_LIMITS in their environment; this process's is left as it was.
-
-    Spawn, not fork: the parent holds torch's thread pools, which do not survive a fork. The workers start together:
-    `init` (the meshes: ~5 MB for 10 frames) reaches them through a queue, since spawn writes a worker's start arguments
-    into a pipe that holds 64 KiB and waits for the worker to read them, which it does only after its imports, so
-    workers with `init` as their arguments started one after another (benchmarks/NOTES.md). Nor do they import this
-    process's main module as spawn would (a script such as benchmarks/fit_gpu.py imports torch's compiler and the
-    fitting code): they run this module's functions only."""
-    context = multiprocessing.get_context("spawn")
-    inputs = context.Queue()
-    inputs.cancel_join_thread()  # workers stopped before reading their copy must not keep this process waiting
-    main = sys.modules["__main__"]
-    saved = {name: os.environ.get(name) for name in WORKER_THREAD_LIMITS}
-    os.environ.update(WORKER_THREAD_LIMITS)
-    spec, path = main.__spec__, main.__dict__.pop("__file__", None)  # what spawn reads to import the main module
-    main.__spec__ = None
-    try:
-        pool = context.Pool(workers, initializer=_receive_inputs, initargs=(inputs,))  # the workers start here
-    finally:
-        main.__spec__ = spec
-        if path is not None:
-            main.__file__ = path
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name)
-            else:
-                os.environ[name] = value
-    for _ in range(workers):
-        inputs.put(init)
-    return pool
-
-
 def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progress: bool,
                 timeline: RenderTimeline | None) -> None:
     tasks = _tasks(cfg)
@@ -309,14 +213,14 @@ def _render_all(scene: SyntheticScene, root: Path, cfg: SyntheticConfig, progres
     timeline = timeline if timeline is not None else RenderTimeline()
     timeline.workers, timeline.started = workers, time.perf_counter()
     if workers == 1:  # one frame an item (the progress bar moves), each camera group's frames in a row (cached rays)
-        _init_worker(*init)
+        init_worker(*init)
         tasks = [([frame], cams) for frames, cams in sorted(tasks, key=lambda task: task[1][0]) for frame in frames]
-        for record in map(_render_and_write, tasks):
+        for record in map(render_and_write, tasks):
             timeline.tasks.append(record)
             bar.update(record["views"])
     else:
         with worker_pool(workers, init) as pool:
-            for record in pool.imap_unordered(_render_and_write, tasks):
+            for record in pool.imap_unordered(render_and_write, tasks):
                 timeline.tasks.append(record)
                 bar.update(record["views"])
     timeline.ended = time.perf_counter()
