@@ -148,3 +148,28 @@ def test_cg_lagged_is_a_validated_precond_key():
     with pytest.raises(ConfigError, match="cg_lagged"):
         load_section(preset, "precond", PrecondConfig)
     assert load_section({"precond": {"cg_lagged": True}}, "precond", PrecondConfig).cg_lagged
+
+
+def test_lpips_divisor_is_waited_for_after_the_distances_are_queued():
+    # A data-parallel rank's LPIPS divisor is an all-reduce over the ranks (pig.avatar.distributed.SummedCount): it
+    # was waited for when launched, so the loss's kernels queued after it waited for the slowest rank too; now it is
+    # waited for at the division, after the distances, with the same value.
+    from pig.avatar.losses import lpips_views
+
+    order = []
+
+    def lpips(a, b):
+        order.append("distances")
+        return (a - b).abs().flatten(1).mean(1)
+
+    def count():
+        order.append("count")
+        return torch.tensor(4.0)
+
+    generator = torch.Generator().manual_seed(0)
+    x, y = torch.rand(2, 3, 3, 24, 24, generator=generator).unbind(0)
+    masks = torch.zeros(3, 24, 24, dtype=torch.bool)
+    masks[:, 4:20, 6:18] = True
+    value = lpips_views(lpips, x, y, masks, torch.zeros(3), "mmlphuman", 16, count=count)
+    assert order == ["distances", "count"]
+    assert torch.equal(value, lpips_views(lpips, x, y, masks, torch.zeros(3), "mmlphuman", 16, count=torch.tensor(4.0)))
