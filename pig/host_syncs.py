@@ -115,8 +115,10 @@ class _FunctionLevel(TorchFunctionMode):
         elif name == "to" and args and isinstance(args[0], torch.Tensor):
             target = _target_device(args[1:], kwargs)
             non_blocking = kwargs.get("non_blocking") is True or any(a is True for a in args[1:])
-            if target is not None and target.type == "cpu" and args[0] not in host and self.owner.device_is_host:
-                pass  # a CPU fit moving its own data to "cpu": the device is the host
+            literal = any(isinstance(a, str) and a == "cpu" for a in (kwargs.get("device"), *args[1:]))  # named
+            if target is not None and target.type == "cpu" and args[0] not in host and self.owner.device_is_host \
+                    and not literal:
+                pass  # a CPU fit moving its own data to its device, which is the host
             elif target is not None and target.type == "cpu" and args[0] not in host:
                 self.owner.record("Tensor.to(cpu)")
             elif target is not None and args[0] in host and not non_blocking:
@@ -186,7 +188,8 @@ class HostSyncs:
     """Records the host synchronisations (module docstring) of the code run while it is active (`with`), on this
     thread, by `phase()` (the caller's current phase name) and by the repository's lines that made them.
 
-    `device_is_host`: the code's device is the CPU itself, so its .to("cpu") are not copies (a CPU fit); .tolist()
+    `device_is_host`: the code's device is the CPU itself, so its .to(device) with a torch.device of the CPU are not
+    copies (a CPU fit), while .to("cpu") with the name written out is (the host, named); .tolist()
     and kin of its tensors still are on a GPU and count."""
 
     def __init__(self, phase: Callable[[], str] = lambda: "", device_is_host: bool = True, depth: int = 4):

@@ -173,3 +173,11 @@ def test_lpips_divisor_is_waited_for_after_the_distances_are_queued():
     value = lpips_views(lpips, x, y, masks, torch.zeros(3), "mmlphuman", 16, count=count)
     assert order == ["distances", "count"]
     assert torch.equal(value, lpips_views(lpips, x, y, masks, torch.zeros(3), "mmlphuman", 16, count=torch.tensor(4.0)))
+
+
+def test_counter_tells_a_named_host_copy_from_a_cpu_fit_moving_to_its_device():
+    x = torch.arange(4.0)
+    with HostSyncs() as syncs:
+        x.to(torch.device("cpu"))  # a CPU fit's .to(device): on a GPU a move to the GPU, no copy to the host
+        x.to("cpu", torch.float64)  # the host, named (FactorizedSystem's SuperLU round trip): a copy on a GPU
+    assert [s.op for s in syncs.counts] == ["Tensor.to(cpu)"]
