@@ -8,7 +8,7 @@ a CPU run finds them:
 
 - aten ops that read a tensor's value or a size computed from its values on the host (SYNC_OPS:
   `_local_scalar_dense` of .item(), float(), int(), bool(); `nonzero` and `torch.where(c)`; `masked_select`;
-  `unique*`; `equal`; `bincount`, `histc` without bounds; `repeat_interleave` without `output_size`; `index` and
+  `unique*`; `equal`; `bincount`; `histc` (counted whatever its bounds); `repeat_interleave` without `output_size`; `index` and
   `index_put_` with a boolean mask, i.e. x[mask]);
 - the copies of device data to the host (Tensor.tolist, .numpy, .cpu, .to("cpu"));
 - blocking copies of host data to the device (torch.tensor(..., device=...), .to(device) or copy_ of host data

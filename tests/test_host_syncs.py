@@ -22,16 +22,16 @@ from host_syncs_cpu import data_parallel_rank, one_process  # noqa: E402
 # The syncs a CPU fit step may make (phase, op, file and function), each with why it stays. A step that makes one
 # outside this list fails here: remove it, or add it with its reason.
 ALLOWED = {
-    # The CPU compositor stands in for gsplat, whose rasterizer reads its tile-intersection count each render
+    # The CPU renderer stands in for gsplat, whose rasterizer reads its tile-intersection count each render
     # (structural: it sizes the buffers from the data).
-    **{("render", op, f"pig/render/{where}"): "CPU compositor" for op, where in (
+    **{("render", op, f"pig/render/{where}"): "CPU renderer" for op, where in (
         ("Tensor.cpu", "cpu_compositor.py (_bands)"), ("Tensor.tolist", "cpu_compositor.py (_bands)"),
         ("Tensor.tolist", "cpu_compositor.py (composite)"), ("blocking copy to device", "cpu_compositor.py (composite)"),
         ("nonzero", "cpu_compositor.py (forward)"), ("nonzero", "cpu_compositor.py (_runs)"),
         ("nonzero", "cpu_compositor.py (row_spans)"), ("nonzero", "projection.py (project_splats)"),
         ("repeat_interleave", "cpu_compositor.py (forward)"), ("repeat_interleave", "cpu_compositor.py (row_spans)"),
         ("unique_consecutive", "cpu_compositor.py (_bands)"))},
-    ("backward", "nonzero", "pig/render/cpu_compositor.py (_runs)"): "CPU compositor",
+    ("backward", "nonzero", "pig/render/cpu_compositor.py (_runs)"): "CPU renderer",
     # The eager transport asks whether any attachment triangle is degenerate; `fit.compile_posing` (the `paper`
     # preset's) runs it sync-free (pig.avatar.model.AvatarModel.compile_posing).
     ("model", "_local_scalar_dense", "pig/body/transport.py (surface_frames)"): "eager posing",
