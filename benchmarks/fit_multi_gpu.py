@@ -30,6 +30,9 @@ per run gives, per phase and rank, the host's window (ms/it), its blocking CUDA 
 The scaling table also gives the gradients' bytes all-reduced per step and their buckets (GradientReducer), and
 with the kernel profile the all-reduce's implied bus bandwidth.
 
+`--cg-lagged`: every run with `precond.cg_lagged` on (the anchors' CG without a blocking read on its owner; issue 42),
+its folder replacing the same GPU count's: run it after the baseline's command.
+
 `--parity ITERATIONS` (with `--repeats R`): R fits of that many iterations per GPU count, each ending with the
 held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick).
 
@@ -190,12 +193,16 @@ def rank_hooks(out: str, warmup: int, iterations: int, profile: int, kernels: in
     return RankHooks(on_iteration=probe, phase=probe.phase, on_reducer=probe.reducer)
 
 
-def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, seed: int, shard_solves: bool) -> Path:
-    """The `paper` preset cut to `iterations`, LPIPS on random weights, no checkpoint inside the run."""
+def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, seed: int, shard_solves: bool,
+                 cg_lagged: bool = False) -> Path:
+    """The `paper` preset cut to `iterations`, LPIPS on random weights, no checkpoint inside the run; `cg_lagged`:
+    precond.cg_lagged on (the anchors' CG without a blocking read)."""
     preset = load_preset("paper")
     preset.pop("_path")
     preset["fit"].update(iterations=iterations, eval_every=eval_every, checkpoint_minutes=10**6, lpips_weights="random",
                          seed=seed, shard_solves=shard_solves)
+    if cg_lagged:
+        preset["precond"]["cg_lagged"] = True
     path = workdir / f"preset_{name}.yaml"
     path.write_text(yaml.safe_dump(preset))
     return path
@@ -222,7 +229,7 @@ def run_one(args) -> int:
     out = workdir / name
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-    preset = write_preset(workdir, name, iterations, eval_every, args.seed, sharded)
+    preset = write_preset(workdir, name, iterations, eval_every, args.seed, sharded, args.cg_lagged)
     fit_dir = out / "fit"
     t0 = time.perf_counter()
     if gpus == 1:
@@ -237,7 +244,7 @@ def run_one(args) -> int:
               "heldout_psnr": float(last["heldout_psnr"]), "train_s": float(last["train_s"]),
               "iterations": int(last["iteration"]), "device": torch.cuda.get_device_name(),
               "capture": describe_capture(capture), "warmup": args.warmup, "timed": args.iterations - args.warmup,
-              "profile_phases": args.profile_phases, "kernel_profile": args.kernel_profile}
+              "profile_phases": args.profile_phases, "kernel_profile": args.kernel_profile, "cg_lagged": args.cg_lagged}
     (out / "run.json").write_text(json.dumps(record))
     return 0
 
@@ -323,6 +330,9 @@ def main(argv=None) -> int:
     parser.add_argument("--collect", action="store_true",
                         help="run nothing: the tables of the runs already in --workdir (those of --gpus and "
                              "--shard-solves, else all)")
+    parser.add_argument("--cg-lagged", action="store_true",
+                        help="precond.cg_lagged on in every run: the anchors' CG without a blocking read (a run "
+                             "replaces the folder of the same GPU count and mode: after the baseline, or another --workdir)")
     parser.add_argument("--run", type=int, default=None, help=argparse.SUPPRESS)  # one GPU count, in this process
     parser.add_argument("--tag", default="a", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -338,7 +348,7 @@ def main(argv=None) -> int:
     if not args.collect and (args.new_capture or not (args.workdir / CAPTURE).exists()):
         fit_gpu_main(["--workdir", str((args.workdir / CAPTURE).parent), "--frames", str(args.frames), "--cameras",
                       str(args.cameras), "--capture-only"])
-    base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed)]
+    base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed)] + ["--cg-lagged"] * args.cg_lagged
     if args.parity:
         for repeat in range(0 if args.collect else args.repeats):
             for gpus, mode in runs(args.gpus, args.shard_solves):  # alternating, so that a drift touches each alike
@@ -394,7 +404,9 @@ def print_tables(results: list[dict], args, capture: Path) -> None:
     captures = sorted({r.get("capture") or (describe_capture(capture) if capture.is_dir() else "unknown")
                        for r in results})
     windows = sorted({(r.get("timed", args.iterations - args.warmup), r.get("warmup", args.warmup)) for r in results})
-    print(f"\ndevice: {', '.join(devices)}; `paper` preset, LPIPS on random weights; capture {'; '.join(captures)}; "
+    lagged = sorted({"on" if r.get("cg_lagged") else "off" for r in results})
+    print(f"\ndevice: {', '.join(devices)}; `paper` preset, LPIPS on random weights, precond.cg_lagged "
+          f"{'/'.join(lagged)}; capture {'; '.join(captures)}; "
           + ", ".join(f"{timed} timed iterations after {warmup}" for timed, warmup in windows)
           + "; NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1")
     print(f"(speed-up against the first row, {label(base)}; all-reduced: the gradients' bytes per step and buckets, "

@@ -88,6 +88,20 @@ class ShardedSampler:
         return shard_picks(self.sampler.picks(iteration), self.rank, self.world)
 
 
+class SummedCount:
+    """A device scalar being summed over the ranks by an asynchronous all-reduce; calling it waits for the sum (on a
+    GPU the device waits, from then on in the stream, not the host) and returns it."""
+
+    def __init__(self, total: torch.Tensor, work: dist.Work):
+        self._total, self._work = total, work
+
+    def __call__(self) -> torch.Tensor:
+        if self._work is not None:
+            self._work.wait()
+            self._work = None
+        return self._total[0]
+
+
 @dataclass
 class LossShare:
     """What a loss evaluation of some of an iteration's views needs to compute their part of the iteration's loss
@@ -97,7 +111,7 @@ class LossShare:
     weight: float
     lpips_rows: np.ndarray | None
     lpips_offsets: np.ndarray | None
-    lpips_count: torch.Tensor | float | None
+    lpips_count: "SummedCount | float | None"
 
 
 class GradientReducer:
@@ -299,11 +313,12 @@ class Parallel:
         dist.all_reduce(stacked)
         return dict(zip(keys, stacked.unbind()))
 
-    def sum_count(self, count: torch.Tensor) -> torch.Tensor:
-        """A count (a device scalar) summed over the ranks, on the device (no wait for the host)."""
+    def sum_count(self, count: torch.Tensor) -> "SummedCount":
+        """A count (a device scalar) summed over the ranks, on the device (no wait for the host): launched now, and
+        waited for where its value is used (SummedCount), so that the work queued between runs while the collective
+        waits for the slowest rank."""
         total = count.to(torch.float32).reshape(1).clone()
-        dist.all_reduce(total)
-        return total[0]
+        return SummedCount(total, dist.all_reduce(total, async_op=True))
 
     def reduce_gradients(self, model: torch.nn.Module) -> GradientReducer:
         """Install the gradient all-reduce on `model`'s parameters (once); `finish` it after each backward."""

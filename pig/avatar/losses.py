@@ -8,6 +8,7 @@ pretrained weights that may be absent: `lpips_term` says in a plain record wheth
 from __future__ import annotations
 
 import sys
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -69,18 +70,21 @@ def fit_note(record: dict) -> str:
 
 def lpips_views(lpips, x: torch.Tensor, y: torch.Tensor, masks: torch.Tensor, background: torch.Tensor, form: str,
                 crop: int = 512, offsets: torch.Tensor | None = None, sliced: bool = False,
-                count: torch.Tensor | float | None = None) -> torch.Tensor:
+                count: Callable[[], torch.Tensor] | torch.Tensor | float | None = None) -> torch.Tensor:
     """Eq. 15's LPIPS term of (B, 3, H, W) renders `x` and targets `y` (bands applied) in `form` (LPIPS_FORMS).
 
     "full": the mean over views of `lpips(x, y)` on the whole frames. "mmlphuman": the mean over the views with a
     non-empty mask of the distances of their `crop`-sized squares (pig.avatar.lpips_crop; `offsets` (B, 2) uniforms
     turn on the random windows, `sliced` crops a view at a time as MMLPHuman's code does), 0 where no view has one.
     `lpips` maps two (B, 3, h, w) batches to (B,) distances. `count`: the divisor of the sum in place of this
-    batch's count of views (of those with a mask, "mmlphuman"), where the batch is a part of a larger one.
+    batch's count of views (of those with a mask, "mmlphuman"), where the batch is a part of a larger one; a callable
+    is called once the distances are queued (pig.avatar.distributed.SummedCount: the wait for a collective comes after
+    them).
     """
+    divisor = count if callable(count) else (lambda: count)
     if form == "full":
         distances = lpips(x, y)
-        return distances.mean() if count is None else distances.sum() / count
+        return distances.mean() if count is None else distances.sum() / divisor()
     if form != "mmlphuman":
         raise ValueError(f"LPIPS form must be one of {LPIPS_FORMS}, found {form!r}")
     if sliced:
@@ -89,7 +93,8 @@ def lpips_views(lpips, x: torch.Tensor, y: torch.Tensor, masks: torch.Tensor, ba
     else:  # one box and set of taps for both: the crop's index work once a loss evaluation (benchmarks/NOTES.md)
         (cx, cy), valid = crop_view_sets([x, y], masks, background, crop, offsets)
     weights = valid.to(torch.float32)
-    return (lpips(cx, cy) * weights).sum() / (weights.sum() if count is None else torch.as_tensor(count)).clamp(min=1)
+    total = (lpips(cx, cy) * weights).sum()
+    return total / (weights.sum() if count is None else torch.as_tensor(divisor())).clamp(min=1)
 
 
 def band_radius(height: int, radius_px: float, reference_height: int) -> int:

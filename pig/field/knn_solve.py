@@ -32,7 +32,10 @@ asks (100k anchors, tol 1e-5: 58 at lambda = 8, ~1500 at 1e6, ~1800 at 1e8), and
 A x keeps the reachable relative residual above roughly 1e-15 lambda (1e-7 to 1e-6 at lambda = 1e8; a
 smaller tol ends in the warning). With `graphs` on a CUDA device, each block of check_every iterations (and
 the residual the check reads) is captured once per right-hand-side shape as a CUDA graph and replayed: the
-iterations are a few tiny kernels each, so launching them from Python cost more than running them. Float64
+iterations are a few tiny kernels each, so launching them from Python cost more than running them. With `lagged`
+(`precond.cg_lagged`) a solve reads nothing back: it runs a number of blocks chosen from the same slot's previous
+solve, whose residuals were copied to the host without blocking (CGSystem._solve_lagged); the tolerance is then
+reached a few solves after a change, not within each (tests/test_host_syncs.py). Float64
 costs 1.1-1.3x the float32 solve time (100k anchors, lambda = 8, one CPU thread, same process).
 """
 from __future__ import annotations
@@ -163,7 +166,7 @@ class CGSystem(_KnnSystem):
     """A = I + lambda L solved by warm-started Jacobi-preconditioned CG in float64 (see module docstring)."""
 
     def __init__(self, laplacian: sp.spmatrix, lam: float, tol: float = 1e-5, max_iter: int = 200, check_every: int = 1,
-                 compiled: bool = False, graphs: bool = False):
+                 compiled: bool = False, graphs: bool = False, lagged: bool = False):
         if not tol > 0 or max_iter < 1 or check_every < 1:
             raise ValueError(f"CGSystem: expected tol > 0, max_iter >= 1 and check_every >= 1, found tol={tol}, "
                              f"max_iter={max_iter}, check_every={check_every}")
@@ -180,6 +183,9 @@ class CGSystem(_KnnSystem):
         self._iterate = torch.compile(_cg_iteration, dynamic=False) if compiled else _cg_iteration
         self.graphs = graphs
         self._graphs: dict[tuple, _CGBlockGraph] = {}
+        self.lagged = lagged
+        self._blocks: dict[str | None, int] = {}  # lagged: each slot's blocks of check_every iterations per solve
+        self._pending: dict[str | None, _LaggedRead] = {}  # lagged: each slot's last residuals, on their way to the host
 
     def _rows_on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         """L's rows as a padded table: column indices (N, D) and values (N, D), padding pointing at the row with 0."""
@@ -206,8 +212,10 @@ class CGSystem(_KnnSystem):
         return self._graphs[key]
 
     def reset(self) -> None:
-        """Forget the warm starts (the next solves start from zero)."""
+        """Forget the warm starts (the next solves start from zero) and the lagged block counts."""
         self._warm.clear()
+        self._blocks.clear()
+        self._pending.clear()
 
     def solve(self, b: torch.Tensor, slot: str | None = None) -> torch.Tensor:
         """x ~= A^-1 b for b (N, ...), warm-started from the previous solution of the same `slot`."""
@@ -222,12 +230,15 @@ class CGSystem(_KnnSystem):
         warm = self._warm.get(slot)
         x = warm.clone() if warm is not None and warm.shape == rhs.shape and warm.device == rhs.device else torch.zeros_like(rhs)
         x = x * active
+        if self.lagged:
+            return self._solve_lagged(b, rhs, x, inv_diag, safe_norm, active, slot)
         iterations = 0
         while True:
             # The true residual decides convergence; the recursively updated one only ends each CG run.
             r = rhs - self._apply64(x)
             residual = (r.norm(dim=0) / safe_norm).max()
-            if residual.item() <= self.tol or iterations >= self.max_iter:
+            value = residual.item()
+            if value <= self.tol or iterations >= self.max_iter:
                 break
             z = inv_diag * r
             p = z.clone()
@@ -247,7 +258,7 @@ class CGSystem(_KnnSystem):
                     break
             x = x.clone()  # a graph's buffer is overwritten by the next solve
         self.last_iterations = iterations
-        self.last_residual = float(residual)
+        self.last_residual = value  # the value read above: float(residual) would wait for the device again
         if self.last_residual > self.tol:
             warnings.warn(
                 f"CGSystem: stopped at the iteration cap ({self.max_iter}) with relative residual "
@@ -257,3 +268,74 @@ class CGSystem(_KnnSystem):
             )
         self._warm[slot] = x
         return x.to(b.dtype, copy=True).reshape(b.shape)
+
+    def _block_limit(self) -> int:
+        return -(-self.max_iter // self.check_every)
+
+    def _solve_lagged(self, b: torch.Tensor, rhs: torch.Tensor, x: torch.Tensor, inv_diag: torch.Tensor,
+                      safe_norm: torch.Tensor, active: torch.Tensor, slot: str | None) -> torch.Tensor:
+        """One CG run of a block count chosen from this slot's previous solve, without reading the device: that
+        solve's residuals (after each block, and the true one at its end) were copied to the host without blocking
+        and are read now (a copy not yet landed is skipped: the count stays). The count doubles (up to max_iter's)
+        when the last true residual missed tol, and drops by one when the recursive residual had reached tol a
+        block before the end; the first solve of a slot runs one block. The host never learns which columns are
+        zero: a zero column keeps the slot's previous warm start, and an all-zero right-hand side reports NaN
+        residuals, which leave the count as it is."""
+        blocks = self._blocks.get(slot, 1)
+        pending = self._pending.pop(slot, None)
+        if pending is not None and pending.ready():
+            *history, final = pending.values()
+            if final > self.tol:
+                if blocks == self._block_limit():  # the previous solve, at the cap, missed tol
+                    warnings.warn(f"CGSystem: a lagged solve stopped at the iteration cap ({self.max_iter}) with "
+                                  f"relative residual {final:.3g} > tol {self.tol:.3g} (N={self.size}, lambda={self.lam})",
+                                  CGNotConverged, stacklevel=3)
+                blocks = min(2 * blocks, self._block_limit())
+            elif any(value <= self.tol for value in history[:-1]):
+                blocks -= 1
+            self.last_residual = final
+        self._blocks[slot] = blocks
+        r = rhs - self._apply64(x)
+        z = inv_diag * r
+        p = z.clone()
+        rz = (r * z).sum(dim=0)
+        history = torch.empty(blocks + 1, dtype=torch.float64, device=rhs.device)
+        for k in range(blocks):
+            steps = min(self.check_every, self.max_iter - k * self.check_every)
+            graph = self._block_graph(rhs, steps, inv_diag)
+            if graph is not None:
+                x, r, p, rz, block_residual = graph.run(x, r, p, rz, safe_norm)
+            else:
+                for _ in range(steps):
+                    x, r, p, rz = self._iterate(x, r, p, rz, *self._rows_on(b.device), inv_diag, self.lam)
+                block_residual = (r.norm(dim=0) / safe_norm).max()
+            history[k].copy_(block_residual)
+        x = x.clone()  # a graph's buffer is overwritten by the next solve
+        history[blocks].copy_(((rhs - self._apply64(x)).norm(dim=0) / safe_norm).max())
+        self._pending[slot] = _LaggedRead(torch.where(active.any(), history, math.nan))
+        self.last_iterations = min(blocks * self.check_every, self.max_iter)
+        warm = self._warm.get(slot)
+        self._warm[slot] = x if warm is None or warm.shape != x.shape or warm.device != x.device else torch.where(active, x, warm)
+        return x.to(b.dtype, copy=True).reshape(b.shape)
+
+
+class _LaggedRead:
+    """A device tensor's values on their way to the host without the host waiting: on CUDA a non-blocking copy into
+    pinned memory and an event recorded after it, which `ready` asks about (cudaEventQuery, no wait); on the CPU the
+    same copy, done at once. Only the CUDA path's asynchrony is not exercised on the CPU."""
+
+    def __init__(self, values: torch.Tensor):
+        buffer = torch.empty(values.shape, dtype=values.dtype, pin_memory=values.is_cuda)
+        buffer.copy_(values, non_blocking=True)
+        self.host = buffer.numpy()  # a view: read with numpy, no torch op
+        self.event = None
+        if values.is_cuda:
+            self.event = torch.cuda.Event()
+            self.event.record()
+
+    def ready(self) -> bool:
+        return self.event is None or self.event.query()
+
+    def values(self) -> list[float]:
+        return self.host.tolist()
+

@@ -71,6 +71,10 @@ class PrecondConfig:
     cg_check_every: int = 1  # CG tests its residual (a host synchronisation) every this many iterations
     cg_compile: bool = False  # CG iterations compiled with torch.compile (speed lever, pig/field/knn_solve.py)
     cg_graphs: bool = False  # on CUDA, each block of cg_check_every iterations replayed as one CUDA graph (speed lever)
+    # CG without a blocking read (speed lever, off until the GPU measures it): each solve runs a number of blocks of
+    # cg_check_every iterations chosen from the same slot's previous solve, whose residuals reach the host without
+    # the host waiting (pig/field/knn_solve.py, CGSystem._solve_lagged); the iterations differ from the checked CG's.
+    cg_lagged: bool = False
     # Iterations before the grid's Sobolev preconditioning starts (0: from the first, as the paper). Until then the
     # grid levels take plain steps (lambda 0), so features local to the loose garment form early; at the switch each
     # level keeps its values and its optimiser state restarts (pig.avatar.training). The anchors are not delayed;
@@ -229,7 +233,7 @@ def knn_system(points: torch.Tensor, cfg: PrecondConfig) -> FactorizedSystem | C
     if cfg.knn_solver == "factorized":
         return FactorizedSystem(laplacian, cfg.anchor_lambda)
     return CGSystem(laplacian, cfg.anchor_lambda, tol=cfg.cg_tol, max_iter=cfg.cg_max_iter, check_every=cfg.cg_check_every,
-                    compiled=cfg.cg_compile, graphs=cfg.cg_graphs)
+                    compiled=cfg.cg_compile, graphs=cfg.cg_graphs, lagged=cfg.cg_lagged)
 
 
 def precondition_anchors(points: torch.Tensor, cfg: PrecondConfig) -> PreconditionedTensor:

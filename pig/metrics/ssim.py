@@ -15,8 +15,9 @@ K1, K2 = 0.01, 0.03
 
 
 def gaussian_window(dtype: torch.dtype, device: torch.device | str | None = None) -> torch.Tensor:
-    """Normalised 1-D Gaussian taps (11,), as scipy.ndimage.gaussian_filter1d builds them."""
-    offsets = torch.arange(-RADIUS, RADIUS + 1, dtype=torch.float64)
+    """Normalised 1-D Gaussian taps (11,), as scipy.ndimage.gaussian_filter1d builds them. Computed on `device`: made
+    on the host, their copy to a GPU was a blocking copy in every loss evaluation (a host synchronisation)."""
+    offsets = torch.arange(-RADIUS, RADIUS + 1, dtype=torch.float64, device=device)
     taps = torch.exp(-0.5 * (offsets / SIGMA) ** 2)
     return (taps / taps.sum()).to(dtype=dtype, device=device)
 
