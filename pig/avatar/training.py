@@ -12,8 +12,8 @@ decoder MLPs and of the L1 + SSIM loss, with SSIM's blur as shifted sums that co
 `lpips_compile` and `lpips_crop_sliced` (the LPIPS term's, pig.metrics.lpips.TrainingLPIPS), `fused_adam`
 (torch's fused Adam kernels instead of a loop over tensors), `log_every` (loss terms read back to the host
 every N iterations, not every one), `host_band` (the loss's silhouette band computed by the view loader threads
-with OpenCV, not on the training device). The KNN solve's host synchronisations are `precond.cg_check_every`, none with `precond.cg_lagged`
-(benchmarks/host_syncs_cpu.py lists a step's).
+with OpenCV, not on the training device). The KNN solve's host synchronisations are `precond.cg_check_every`, none
+with `precond.cg_lagged` (benchmarks/host_syncs_cpu.py lists a step's).
 """
 from __future__ import annotations
 
