@@ -276,14 +276,15 @@ class CGSystem(_KnnSystem):
                       safe_norm: torch.Tensor, active: torch.Tensor, slot: str | None) -> torch.Tensor:
         """One CG run of a block count chosen from this slot's previous solve, without reading the device: that
         solve's residuals (after each block, and the true one at its end) were copied to the host without blocking
-        and are read now (a copy not yet landed is skipped: the count stays). The count doubles (up to max_iter's)
+        and are read now, a step later, when the copy has long landed (waited for if not: the count must not depend
+        on timing, or a fit's iterates would differ from run to run). The count doubles (up to max_iter's)
         when the last true residual missed tol, and drops by one when the recursive residual had reached tol a
         block before the end; the first solve of a slot runs one block. The host never learns which columns are
         zero: a zero column keeps the slot's previous warm start, and an all-zero right-hand side reports NaN
         residuals, which leave the count as it is."""
         blocks = self._blocks.get(slot, 1)
         pending = self._pending.pop(slot, None)
-        if pending is not None and pending.ready():
+        if pending is not None:
             *history, final = pending.values()
             if final > self.tol:
                 if blocks == self._block_limit():  # the previous solve, at the cap, missed tol
@@ -321,8 +322,8 @@ class CGSystem(_KnnSystem):
 
 class _LaggedRead:
     """A device tensor's values on their way to the host without the host waiting: on CUDA a non-blocking copy into
-    pinned memory and an event recorded after it, which `ready` asks about (cudaEventQuery, no wait); on the CPU the
-    same copy, done at once. Only the CUDA path's asynchrony is not exercised on the CPU."""
+    pinned memory and an event recorded after it, which `values` waits for (by the next solve, a step later, it has
+    landed); on the CPU the same copy, done at once. Only the CUDA path's asynchrony is not exercised on the CPU."""
 
     def __init__(self, values: torch.Tensor):
         buffer = torch.empty(values.shape, dtype=values.dtype, pin_memory=values.is_cuda)
@@ -333,9 +334,8 @@ class _LaggedRead:
             self.event = torch.cuda.Event()
             self.event.record()
 
-    def ready(self) -> bool:
-        return self.event is None or self.event.query()
-
     def values(self) -> list[float]:
+        if self.event is not None:
+            self.event.synchronize()
         return self.host.tolist()
 
