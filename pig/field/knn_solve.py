@@ -211,6 +211,16 @@ class CGSystem(_KnnSystem):
                                               self.lam)
         return self._graphs[key]
 
+    def _run_block(self, rhs, steps: int, x, r, p, rz, inv_diag, safe_norm) -> tuple[torch.Tensor, ...]:
+        """`steps` CG iterations on (x, r, p, rz), replayed as a CUDA graph where there is one, and the relative
+        residual max |r| / |b| after them (on the device)."""
+        graph = self._block_graph(rhs, steps, inv_diag)
+        if graph is not None:
+            return graph.run(x, r, p, rz, safe_norm)
+        for _ in range(steps):
+            x, r, p, rz = self._iterate(x, r, p, rz, *self._rows_on(rhs.device), inv_diag, self.lam)
+        return x, r, p, rz, (r.norm(dim=0) / safe_norm).max()
+
     def reset(self) -> None:
         """Forget the warm starts (the next solves start from zero) and the lagged block counts."""
         self._warm.clear()
@@ -245,13 +255,7 @@ class CGSystem(_KnnSystem):
             rz = (r * z).sum(dim=0)
             while iterations < self.max_iter:
                 steps = min(self.check_every, self.max_iter - iterations)
-                graph = self._block_graph(rhs, steps, inv_diag)
-                if graph is not None:
-                    x, r, p, rz, block_residual = graph.run(x, r, p, rz, safe_norm)
-                else:
-                    for _ in range(steps):
-                        x, r, p, rz = self._iterate(x, r, p, rz, *self._rows_on(b.device), inv_diag, self.lam)
-                    block_residual = (r.norm(dim=0) / safe_norm).max()
+                x, r, p, rz, block_residual = self._run_block(rhs, steps, x, r, p, rz, inv_diag, safe_norm)
                 iterations += steps
                 # Each check waits for the device; a block of iterations between checks keeps its queue full.
                 if block_residual.item() <= self.tol:
@@ -303,13 +307,7 @@ class CGSystem(_KnnSystem):
         history = torch.empty(blocks + 1, dtype=torch.float64, device=rhs.device)
         for k in range(blocks):
             steps = min(self.check_every, self.max_iter - k * self.check_every)
-            graph = self._block_graph(rhs, steps, inv_diag)
-            if graph is not None:
-                x, r, p, rz, block_residual = graph.run(x, r, p, rz, safe_norm)
-            else:
-                for _ in range(steps):
-                    x, r, p, rz = self._iterate(x, r, p, rz, *self._rows_on(b.device), inv_diag, self.lam)
-                block_residual = (r.norm(dim=0) / safe_norm).max()
+            x, r, p, rz, block_residual = self._run_block(rhs, steps, x, r, p, rz, inv_diag, safe_norm)
             history[k].copy_(block_residual)
         x = x.clone()  # a graph's buffer is overwritten by the next solve
         history[blocks].copy_(((rhs - self._apply64(x)).norm(dim=0) / safe_norm).max())
