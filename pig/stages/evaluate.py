@@ -175,8 +175,9 @@ class BatchLoader:
     the GIL), `ahead` batches in front of the one being scored, straight into uint8 buffers: page-locked when
     `pin` (a GPU's copies then run asynchronously), a quarter of the float32 bytes either way. With a `labeller`
     (pig.metrics.regions.RegionLabeller) each view's region labels are cast on `label_workers` threads of their
-    own, as far ahead. Iterating yields LoadedBatch; `wait_s` sums the time the scoring waited for decoding and
-    labels."""
+    own, up to 4 views a thread ahead of the scoring (views of several cameras at once: each camera's pixel rays are
+    built once, on the thread that first needs them). Iterating yields LoadedBatch; `wait_s` sums the time the
+    scoring waited for decoding and labels."""
 
     def __init__(self, capture, readers: dict[int, RenderReader], batches: list[list[tuple[str, int]]], workers: int,
                  pin: bool = False, ahead: int = 2, labeller: RegionLabeller | None = None, label_workers: int = 1):
@@ -187,32 +188,48 @@ class BatchLoader:
 
     def __iter__(self):
         # The labels' pool starts no thread unless a labeller submits to it.
+        views = [view for batch in self.batches for view in batch]
+        window = 4 * self.label_workers if self.labeller is not None else 0  # labels held ahead: bounded memory
+        labels: list = []  # each view's labels (a future; None once copied into its batch)
         with ThreadPoolExecutor(self.workers, thread_name_prefix="evaluate-decode") as pool, \
-                ThreadPoolExecutor(self.label_workers, thread_name_prefix="evaluate-labels") as labels:
+                ThreadPoolExecutor(self.label_workers, thread_name_prefix="evaluate-labels") as label_pool:
+
+            def label_ahead(end: int) -> None:
+                while len(labels) < min(end, len(views)):
+                    labels.append(label_pool.submit(self.labeller, *views[len(labels)]))
+
+            label_ahead(window)
             # Each (LOD, camera)'s chunk index built once, in parallel, before the views race to build it.
             cameras = sorted({camera for batch in self.batches for camera, _ in batch})
             for job in [pool.submit(reader.has, camera, -1) for reader in self.readers.values() for camera in cameras]:
                 job.result()
-            pending = [self._submit(pool, labels, batch) for batch in self.batches[:self.ahead + 1]]
+            pending = [self._submit(pool, batch) for batch in self.batches[:self.ahead + 1]]
+            first = 0  # the batch's first view
             for b in range(len(self.batches)):
                 loaded, jobs = pending.pop(0)
                 start = time.perf_counter()
                 for job in jobs:
                     job.result()  # re-raises a decoding error naming its file
+                if loaded.labels is not None:
+                    for i in range(len(loaded.views)):
+                        loaded.labels[i].numpy()[...] = labels[first + i].result()
+                        labels[first + i] = None
                 self.wait_s += time.perf_counter() - start
+                first += len(loaded.views)
+                if window:
+                    label_ahead(first + window)
                 if b + self.ahead + 1 < len(self.batches):
-                    pending.append(self._submit(pool, labels, self.batches[b + self.ahead + 1]))
+                    pending.append(self._submit(pool, self.batches[b + self.ahead + 1]))
                 yield loaded
 
-    def _submit(self, pool: ThreadPoolExecutor, label_pool: ThreadPoolExecutor, views: list[tuple[str, int]]):
+    def _submit(self, pool: ThreadPoolExecutor, views: list[tuple[str, int]]):
         camera = self.capture.cameras[views[0][0]]
         shape = (len(views), camera.height, camera.width)
         loaded = LoadedBatch(views, self._empty(*shape, 3), self._empty(*shape, dtype=torch.bool),
                              {level: self._empty(*shape, 3) for level in self.readers})
-        jobs = []
-        if self.labeller is not None:  # first: the longest jobs
+        if self.labeller is not None:  # filled from the labels' own threads when the batch is due
             loaded.labels = self._empty(*shape)
-            jobs += [label_pool.submit(self._label, view, loaded.labels[i].numpy()) for i, view in enumerate(views)]
+        jobs = []
         for i, view in enumerate(views):
             jobs.append(pool.submit(self._truth, view, loaded.truths[i].numpy(), loaded.masks[i].numpy()))
             jobs += [pool.submit(self._render, reader, view, loaded.renders[level][i].numpy())
@@ -225,9 +242,6 @@ class BatchLoader:
     def _truth(self, view: tuple[str, int], image: np.ndarray, mask: np.ndarray) -> None:
         image[...] = self.capture.image_u8(*view)
         mask[...] = self.capture.mask(*view)
-
-    def _label(self, view: tuple[str, int], out: np.ndarray) -> None:
-        out[...] = self.labeller(*view)
 
     @staticmethod
     def _render(reader: RenderReader, view: tuple[str, int], out: np.ndarray) -> None:
