@@ -586,7 +586,8 @@ def test_evaluate_twice_in_a_process_casts_the_labels_once_and_agrees_with_every
         labels = _whole_frame_labels(truth.surfaces(frame), loaded.cameras[camera])
         x = torch.from_numpy(reader.image_u8(camera, frame)).float().div(255).permute(2, 0, 1)[None]
         mask = torch.from_numpy(loaded.mask(camera, frame) > 0)
-        y = (torch.from_numpy(np.array(loaded.image_u8(camera, frame))).float().div(255) * mask[..., None]).permute(2, 0, 1)[None]
+        truth_image = torch.from_numpy(np.array(loaded.image_u8(camera, frame))).float().div(255)
+        y = (truth_image * mask[..., None]).permute(2, 0, 1)[None]
         expected = region_psnr(x, y, torch.from_numpy(labels)[None])[0].numpy()
         got = np.array([row.psnr_background, row.psnr_body, row.psnr_garment], dtype=float)
         np.testing.assert_allclose(got, expected, rtol=1e-5)  # the CSV's 6 digits

@@ -264,8 +264,8 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
     over the split's views that have ground truth, in one pass: each ground-truth view is decoded, masked and
     passed through the LPIPS and Inception networks once for all LODs. Without `inception` the FID is NaN with
     `fid_note`. With a `labeller` (true meshes), also PSNR/SSIM per region (REGION_KEYS). `seconds`, when given,
-    gets the wall time (`total_s`) and the time spent waiting for decoding (`decode_wait_s`) and for the device
-    (`device_wait_s`)."""
+    gets the wall time (`total_s`) and the time spent waiting for decoding and labels (`decode_wait_s`) and for the
+    device (`device_wait_s`)."""
     device = torch.device(device)
     rules = protocol(cfg.protocol)
     batches = view_batches(capture, split, cfg.batch_size)
@@ -430,7 +430,8 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         "views_per_s": scored / seconds["total_s"] if seconds["total_s"] > 0 else math.nan})
     print(f"[evaluate] {split}: {views} views x {len(levels)} LODs in {seconds['total_s']:.1f} s "
           f"({scored / max(seconds['total_s'], 1e-9):.1f} views/s); waited {seconds['decode_wait_s']:.1f} s for "
-          f"decoding and {seconds['device_wait_s']:.1f} s for the device")
+          f"decoding{' and region labels' if truth is not None else ''} and {seconds['device_wait_s']:.1f} s for the "
+          "device")
     return written
 
 
