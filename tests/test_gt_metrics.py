@@ -556,6 +556,8 @@ def test_label_cache_keeps_the_most_recent_within_its_bytes():
 
 def test_evaluate_twice_in_a_process_casts_the_labels_once_and_agrees_with_every_pixels_labels(rendered, tmp_path,
                                                                                                 monkeypatch):
+    from dataclasses import replace
+
     from pig.data.capture import Capture
     from pig.data.render_store import RenderReader
     from pig.metrics import regions
@@ -567,9 +569,12 @@ def test_evaluate_twice_in_a_process_casts_the_labels_once_and_agrees_with_every
     casts = []
     real = regions.region_labels
     monkeypatch.setattr(regions, "region_labels", lambda *args: casts.append(1) or real(*args))
-    first = evaluate.evaluate_split(capture, renders, "novel_view", tmp_path / "a", cfg, [0])[0]
+    # One label thread, then three: labels a batch (8 views) ahead or further.
+    first = evaluate.evaluate_split(capture, renders, "novel_view", tmp_path / "a", replace(cfg, label_workers=1),
+                                    [0])[0]
     cast_first = len(casts)
-    second = evaluate.evaluate_split(capture, renders, "novel_view", tmp_path / "b", cfg, [0])[0]
+    second = evaluate.evaluate_split(capture, renders, "novel_view", tmp_path / "b", replace(cfg, label_workers=3),
+                                     [0])[0]
     loaded = Capture.load(capture)
     views = loaded.views("novel_view")
     assert cast_first == len(views) and len(casts) == cast_first

@@ -207,6 +207,8 @@ class BatchLoader:
             first = 0  # the batch's first view
             for b in range(len(self.batches)):
                 loaded, jobs = pending.pop(0)
+                if window:  # this batch's labels and `window` views after it
+                    label_ahead(first + len(loaded.views) + window)
                 start = time.perf_counter()
                 for job in jobs:
                     job.result()  # re-raises a decoding error naming its file
@@ -216,8 +218,6 @@ class BatchLoader:
                         labels[first + i] = None
                 self.wait_s += time.perf_counter() - start
                 first += len(loaded.views)
-                if window:
-                    label_ahead(first + window)
                 if b + self.ahead + 1 < len(self.batches):
                     pending.append(self._submit(pool, self.batches[b + self.ahead + 1]))
                 yield loaded
