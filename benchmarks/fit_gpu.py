@@ -254,8 +254,9 @@ GROUND_TRUTH_KEYS = ("psnr_garment", "ssim_garment", "psnr_body", "ssim_body", "
 
 def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capture: Path,
                         checkpoint: str = "avatar.pt") -> dict:
-    """Render and evaluate `checkpoint`'s novel view and novel pose at every LOD; {split: {lod: {psnr, ssim, images}}}
-    + iterations."""
+    """Render and evaluate `checkpoint`'s novel view and novel pose at every LOD (`--finest-only`: the finest alone,
+    rendered alone); {split: {lod: {psnr, ssim, images}}} + iterations. Called twice in one process (the weight
+    average, then the last iterate), the second evaluation reuses the first's region labels (pig.stages.evaluate)."""
     from pig.stages.evaluate import main as evaluate, render_levels
     from pig.stages.render import main as render
     from pig._io import read_record
@@ -269,8 +270,8 @@ def evaluate_budget_run(args, name: str, fit_dir: Path, profile_path: Path, capt
         renders = args.workdir / f"renders_{name}" / split
         metrics = args.workdir / f"metrics_{name}"
         render(["--checkpoint", str(fit_dir / checkpoint), "--capture", str(capture), "--split", split, "--output", str(renders),
-                "--preset", str(profile_path), "--overwrite"])
-        finest = ["--lod", str(max(render_levels(renders)))] if args.finest_only else []
+                "--preset", str(profile_path), "--overwrite", *(["--lod", "-1"] if args.finest_only else [])])
+        finest = ["--lod", str(max(render_levels(renders)))] if args.finest_only else []  # the one rendered
         evaluate(["--capture", str(capture), "--renders", str(renders), "--split", split, "--output", str(metrics),
                   "--preset", str(profile_path), "--overwrite", *finest])
         out[split] = {}

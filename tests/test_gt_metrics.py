@@ -434,3 +434,165 @@ def test_renders_record_the_fingerprint_and_folder_of_their_capture(rendered):
     listing = "".join(f"{kind}/{cam.name}/{f.name} {f.stat().st_size}\n" for kind in ("images", "masks")
                       for cam in sorted((capture / kind).iterdir()) for f in sorted(cam.iterdir()))
     assert record["fingerprint"]["images"] == hashlib.sha256(listing.encode()).hexdigest()
+
+
+# ---- the labels' cost (issue 38): only the rays that can meet a surface, each view once per process ----
+
+def _whole_frame_labels(surfaces, camera):
+    """Reference: every pixel's centre ray cast (the labels before issue 38)."""
+    from pig.metrics.regions import camera_rays, mesh_caster
+
+    origin, directions = camera_rays(camera)
+    directions = directions.reshape(-1, 3)
+    triangle = mesh_caster(surfaces).intersects_first(np.broadcast_to(origin, directions.shape), directions)
+    labels = np.where(triangle < 0, BACKGROUND, np.where(triangle < len(surfaces[0][1]), BODY, GARMENT))
+    return labels.astype(np.uint8).reshape(camera.height, camera.width)
+
+
+class _CountingCaster:
+    """A caster that counts the rays cast through it."""
+
+    def __init__(self, caster):
+        self.caster, self.rays = caster, 0
+
+    def intersects_first(self, origins, directions):
+        self.rays += len(directions)
+        return self.caster.intersects_first(origins, directions)
+
+
+def test_region_labels_cast_only_the_box_and_equal_every_pixels_cast(small_capture):
+    from pig.data.capture import Capture
+    from pig.metrics.regions import camera_rays, covered_box, mesh_caster
+
+    capture = Capture.load(small_capture)
+    truth = TrueMeshes.load(small_capture / GT_MESHES)
+    cast, pixels = 0, 0
+    for camera, frame in capture.views("novel_view") + capture.views("novel_pose"):
+        surfaces, cam = truth.surfaces(frame), capture.cameras[camera]
+        caster = _CountingCaster(mesh_caster(surfaces))
+        labels = region_labels(surfaces, cam, caster, camera_rays(cam))
+        np.testing.assert_array_equal(labels, _whole_frame_labels(surfaces, cam))
+        rows, cols = covered_box(surfaces, cam)
+        assert caster.rays == (rows.stop - rows.start) * (cols.stop - cols.start)
+        assert (labels[rows, cols] != BACKGROUND).any()
+        cast, pixels = cast + caster.rays, pixels + cam.width * cam.height
+    assert cast < 0.8 * pixels  # the subject leaves part of each 48-pixel frame to the background
+
+
+def test_covered_box_holds_every_pixel_a_surface_covers(rng):
+    from pig.metrics.regions import covered_box
+
+    camera = _camera(40, 30, focal=30.0)
+    for _ in range(20):
+        corners = rng.normal(0, 0.6, (4, 3, 3)) + [0.0, 0.0, 4.0]
+        surfaces = [(corners[:2].reshape(-1, 3), np.arange(6).reshape(2, 3)),
+                    (corners[2:].reshape(-1, 3), np.arange(6).reshape(2, 3))]
+        labels = region_labels(surfaces, camera)
+        rows, cols = covered_box(surfaces, camera)
+        outside = labels.copy()
+        outside[rows, cols] = BACKGROUND
+        assert not outside.any()
+        np.testing.assert_array_equal(labels, _whole_frame_labels(surfaces, camera))
+    # A vertex behind the camera projects without bound: the whole frame, which still labels correctly.
+    behind = [(np.array([[-1.0, -1.0, 4.0], [1.0, -1.0, 4.0], [0.0, 1.0, -1.0]]), np.array([[0, 1, 2]])),
+              (np.zeros((0, 3)), np.zeros((0, 3), np.int64))]
+    assert covered_box(behind, camera) == (slice(0, 30), slice(0, 40))
+    np.testing.assert_array_equal(region_labels(behind, camera), _whole_frame_labels(behind, camera))
+    # Vertices that all project outside the frame: nothing to cast.
+    aside = [(np.array([[9.0, 0.0, 4.0], [10.0, 0.0, 4.0], [9.5, 1.0, 4.0]]), np.array([[0, 1, 2]])),
+             (np.zeros((0, 3)), np.zeros((0, 3), np.int64))]
+    rows, cols = covered_box(aside, camera)
+    assert cols.start == cols.stop and not region_labels(aside, camera).any()
+
+
+def test_labeller_on_threads_builds_each_frame_and_camera_once_and_a_cache_casts_each_view_once(small_capture,
+                                                                                                 monkeypatch):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pig.data.capture import Capture
+    from pig.metrics import regions
+
+    capture = Capture.load(small_capture)
+    truth = TrueMeshes.load(small_capture / GT_MESHES)
+    views = capture.views("novel_pose") + capture.views("novel_view")
+    calls = {"mesh_caster": 0, "camera_rays": 0, "region_labels": 0}
+    for name in calls:
+        def counted(*args, _name=name, _function=getattr(regions, name), **kwargs):
+            calls[_name] += 1
+            return _function(*args, **kwargs)
+        monkeypatch.setattr(regions, name, counted)
+    cache = regions.LabelCache(1 << 30)
+    shared = regions.RegionLabeller(truth, capture.cameras, cache)
+    with ThreadPoolExecutor(4) as pool:
+        labels = list(pool.map(lambda view: shared(*view), views))
+    assert calls == {"mesh_caster": len({f for _, f in views}), "camera_rays": len({c for c, _ in views}),
+                     "region_labels": len(views)}
+    for (camera, frame), got in zip(views, labels):
+        np.testing.assert_array_equal(got, _whole_frame_labels(truth.surfaces(frame), capture.cameras[camera]))
+    # Another labeller with the same cache (a second evaluation in the process) casts nothing and agrees.
+    before = dict(calls)
+    again = regions.RegionLabeller(truth, capture.cameras, cache)
+    for (camera, frame), got in zip(views, labels):
+        np.testing.assert_array_equal(again(camera, frame), got)
+    assert calls == before
+    # Moved surfaces are another key: cast afresh.
+    moved = TrueMeshes(truth.path, truth.frames, truth.body_vertices + [0.0, 0.0, 0.05], truth.body_faces,
+                       truth.garment_vertices, truth.garment_faces)
+    regions.RegionLabeller(moved, capture.cameras, cache)(*views[0])
+    assert calls["region_labels"] == before["region_labels"] + 1
+
+
+def test_label_cache_keeps_the_most_recent_within_its_bytes():
+    from pig.metrics.regions import LabelCache
+
+    cache = LabelCache(250)
+    for key in (b"a", b"b", b"c"):
+        cache.put(key, np.full(100, ord(key), np.uint8))
+    assert cache.get(b"a") is None and cache.bytes == 200
+    assert cache.get(b"b")[0] == ord("b") and not cache.get(b"b").flags.writeable
+    cache.put(b"d", np.zeros(100, np.uint8))  # b was used last: c goes
+    assert cache.get(b"c") is None and cache.get(b"b") is not None
+
+
+def test_evaluate_twice_in_a_process_casts_the_labels_once_and_agrees_with_every_pixels_labels(rendered, tmp_path,
+                                                                                                monkeypatch):
+    from dataclasses import replace
+
+    from pig.data.capture import Capture
+    from pig.data.render_store import RenderReader
+    from pig.metrics import regions
+    from pig.stages import evaluate
+
+    out, cfg = rendered
+    capture, renders = out["synthetic"]
+    monkeypatch.setattr(evaluate, "LABELS", regions.LabelCache(1 << 30))  # nothing from the other tests
+    casts = []
+    real = regions.region_labels
+    monkeypatch.setattr(regions, "region_labels", lambda *args: casts.append(1) or real(*args))
+    # One label thread, then three: labels a batch (8 views) ahead or further.
+    first = evaluate.evaluate_split(capture, renders, "novel_view", tmp_path / "a", replace(cfg, label_workers=1),
+                                    [0])[0]
+    cast_first = len(casts)
+    second = evaluate.evaluate_split(capture, renders, "novel_view", tmp_path / "b", replace(cfg, label_workers=3),
+                                     [0])[0]
+    loaded = Capture.load(capture)
+    views = loaded.views("novel_view")
+    assert cast_first == len(views) and len(casts) == cast_first
+    assert first.read_text() == second.read_text()
+    summaries = [json.loads(path.with_suffix(".json").read_text()) for path in (first, second)]
+    assert {k: v for k, v in summaries[0].items() if k in REGION_KEYS + GEOMETRY_KEYS} == \
+        {k: v for k, v in summaries[1].items() if k in REGION_KEYS + GEOMETRY_KEYS}
+    # Each image's region PSNR from the labels of every pixel's ray (the code before issue 38).
+    table = pd.read_csv(first)
+    truth = TrueMeshes.load(capture / GT_MESHES)
+    reader = RenderReader(renders / "lod0", {name: (c.width, c.height) for name, c in loaded.cameras.items()})
+    for row in table.itertuples():
+        camera, frame = row.camera, int(row.frame)
+        labels = _whole_frame_labels(truth.surfaces(frame), loaded.cameras[camera])
+        x = torch.from_numpy(reader.image_u8(camera, frame)).float().div(255).permute(2, 0, 1)[None]
+        mask = torch.from_numpy(loaded.mask(camera, frame) > 0)
+        truth_image = torch.from_numpy(np.array(loaded.image_u8(camera, frame))).float().div(255)
+        y = (truth_image * mask[..., None]).permute(2, 0, 1)[None]
+        expected = region_psnr(x, y, torch.from_numpy(labels)[None])[0].numpy()
+        got = np.array([row.psnr_background, row.psnr_body, row.psnr_garment], dtype=float)
+        np.testing.assert_allclose(got, expected, rtol=1e-5)  # the CSV's 6 digits

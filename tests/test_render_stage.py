@@ -111,3 +111,26 @@ def test_render_records_the_hash_of_the_checkpoint_it_rendered_when_a_fit_replac
 
     assert not newer.exists() and hashlib.sha256(checkpoint.read_bytes()).hexdigest() != rendered_from
     assert read_manifest(renders)["checkpoint_sha256"] == rendered_from
+
+
+def test_render_of_the_finest_lod_alone_equals_that_lod_of_every_lod(fitted, tmp_path):
+    from pig.data.ground_truth import SPLATS, SplatTrack
+
+    capture, checkpoint = fitted
+    cfg, raster = EvaluateConfig(timing_frames=1), RasterizerConfig(backend="cpu")
+    render_split(checkpoint, capture, "novel_view", tmp_path / "all", cfg, raster)
+    render_split(checkpoint, capture, "novel_view", tmp_path / "finest", cfg, raster, lods=[-1])
+    levels = sorted(int(p.name[3:]) for p in (tmp_path / "all").glob("lod*"))
+    assert len(levels) > 1 and [p.name for p in (tmp_path / "finest").glob("lod*")] == [f"lod{levels[-1]}"]
+    manifest = json.loads((tmp_path / "finest" / "manifest.json").read_text())
+    assert manifest["levels"] == [levels[-1]]
+    cameras = json.loads((capture / "cameras.json").read_text())
+    sizes = {name: (entry["width"], entry["height"]) for name, entry in cameras.items()}
+    readers = [RenderReader(tmp_path / name / f"lod{levels[-1]}", sizes) for name in ("all", "finest")]
+    for camera in manifest["cameras"]:
+        for frame in manifest["frames"]:
+            np.testing.assert_array_equal(readers[1].image_u8(camera, frame), readers[0].image_u8(camera, frame))
+    tracks = [SplatTrack.load(tmp_path / name / f"lod{levels[-1]}" / SPLATS) for name in ("all", "finest")]
+    np.testing.assert_array_equal(tracks[1].centres, tracks[0].centres)
+    with pytest.raises(ValueError, match=f"--lod {len(levels)}: .* has levels 0..{len(levels) - 1}"):
+        render_split(checkpoint, capture, "novel_view", tmp_path / "beyond", cfg, raster, lods=[len(levels)])

@@ -101,7 +101,7 @@ class GeometrySums:
         for index, (vertices, faces) in enumerate(surfaces):
             samples = sample_surface(vertices, faces, SURFACE_SAMPLES, rng)
             if len(samples) and tree is not None:
-                self.sample_distance[index] += tree.query(samples)[0].sum()
+                self.sample_distance[index] += tree.query(samples, workers=-1)[0].sum()
                 self.samples[index] += len(samples)
 
     def accuracy(self) -> np.ndarray:

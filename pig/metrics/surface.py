@@ -122,16 +122,16 @@ class TriangleMesh:
         u are the candidates, all examined.
         """
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        _, first = self.tree.query(points)
+        _, first = self.tree.query(points, workers=-1)  # every core: each point's answer is its own
         bary, dist = self._closest(points, first)
         face = first.astype(np.int64)
         radius = dist + self.reach
-        sizes = self.tree.query_ball_point(points, radius, return_length=True)
+        sizes = self.tree.query_ball_point(points, radius, return_length=True, workers=-1)
         # Groups of at most PAIR_BUDGET candidate pairs: a far-off point's ball may hold the whole mesh.
         group = np.cumsum(sizes) // PAIR_BUDGET
         for g in np.unique(group):
             chunk = np.flatnonzero(group == g)
-            balls = self.tree.query_ball_point(points[chunk], radius[chunk])
+            balls = self.tree.query_ball_point(points[chunk], radius[chunk], workers=-1)  # each ball sorted
             owner = np.repeat(chunk, [len(ball) for ball in balls])
             candidate = np.fromiter(itertools.chain.from_iterable(balls), dtype=np.int64, count=len(owner))
             hopeful = (np.linalg.norm(points[owner] - self.tree.data[candidate], axis=1) - self.radius[candidate]

@@ -11,10 +11,14 @@ on the device, so memory does not grow with the split.
 A capture with true meshes (synthetic, gt_meshes.npz) also gets PSNR/SSIM per region (garment, body, background;
 pig.metrics.regions) per image and in the summary, and the geometry error and correspondence drift of the render
 stage's splats (lod{l}/splats.npz; pig.metrics.geometry) in the summary. Real captures have none of these columns.
+The region labels are cast on `evaluate.label_workers` threads ahead of the scoring, as the views are decoded, and
+kept for the process (`LABELS`): a second evaluation of the same capture in one process (a fit's weight average,
+then its last iterate) casts none. The geometry metrics are computed meanwhile on another thread.
 """
 from __future__ import annotations
 
 import math
+import os
 import re
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -36,7 +40,7 @@ from pig.metrics.geometry import ground_truth_geometry
 from pig.metrics.lpips import LPIPS
 from pig.metrics.protocol import Protocol, crop_to_mask_box, protocol, ssim_uniform
 from pig.metrics.psnr import psnr
-from pig.metrics.regions import REGIONS, RegionLabeller, region_psnr, region_ssim
+from pig.metrics.regions import REGIONS, LabelCache, RegionLabeller, region_psnr, region_ssim
 from pig.metrics.ssim import ssim, ssim_map
 from pig.metrics.weights import (INCEPTION_FILE, LPIPS_LINEAR_FILES, TORCHVISION_FILES, WeightsMissing, locate,
                                  lpips_package_weights)
@@ -78,6 +82,9 @@ class EvaluateConfig:
     chunk_frames: Annotated[int, Bounds(ge=1)] = 16
     encode_workers: Annotated[int, Bounds(ge=1)] = 2
     every_view: bool = False
+    # Threads that cast a synthetic capture's region labels (pig.metrics.regions) ahead of the scoring; 0: one per
+    # core. The casts release the GIL: on the GPU machine they were most of an evaluation's host time (issue 38).
+    label_workers: Annotated[int, Bounds(ge=0)] = 0
 
 
 # The render stage passes on the note of the avatar's fit (pig.avatar.losses.fit_note: the LPIPS term of Eq. 15
@@ -131,6 +138,9 @@ def precision_note(cfg: EvaluateConfig) -> str:
 
 
 REGION_KEYS = [f"{metric}_{region}" for metric in ("psnr", "ssim") for region in ("garment", "body", "background")]
+# Region labels of the views this process scored, by content (LabelCache): a paper-sized subject's 86 held-out
+# views take 130 MB at 1330 x 1150.
+LABELS = LabelCache(1 << 30)
 
 
 def _mean_of_present(values: pd.Series) -> float:
@@ -151,39 +161,63 @@ def view_batches(capture, split: str, batch_size: int) -> list[list[tuple[str, i
 @dataclass
 class LoadedBatch:
     """One batch as tensors on the host: the ground truth before masking (B, H, W, 3) uint8, its masks (B, H, W)
-    bool, and each LOD's renders (B, H, W, 3) uint8."""
+    bool, each LOD's renders (B, H, W, 3) uint8 and, with true meshes, the region labels (B, H, W) uint8."""
 
     views: list[tuple[str, int]]
     truths: torch.Tensor
     masks: torch.Tensor
     renders: dict[int, torch.Tensor]
+    labels: torch.Tensor | None = None
 
 
 class BatchLoader:
     """Decodes each batch's ground truth once and every LOD's renders of it on `workers` threads (OpenCV releases
     the GIL), `ahead` batches in front of the one being scored, straight into uint8 buffers: page-locked when
-    `pin` (a GPU's copies then run asynchronously), a quarter of the float32 bytes either way. Iterating yields
-    LoadedBatch; `wait_s` sums the time the scoring waited for decoding."""
+    `pin` (a GPU's copies then run asynchronously), a quarter of the float32 bytes either way. With a `labeller`
+    (pig.metrics.regions.RegionLabeller) each view's region labels are cast on `label_workers` threads of their
+    own, up to 4 views a thread ahead of the scoring (views of several cameras at once: each camera's pixel rays are
+    built once, on the thread that first needs them). Iterating yields LoadedBatch; `wait_s` sums the time the
+    scoring waited for decoding and labels."""
 
     def __init__(self, capture, readers: dict[int, RenderReader], batches: list[list[tuple[str, int]]], workers: int,
-                 pin: bool = False, ahead: int = 2):
+                 pin: bool = False, ahead: int = 2, labeller: RegionLabeller | None = None, label_workers: int = 1):
         self.capture, self.readers, self.batches = capture, readers, batches
         self.workers, self.pin, self.ahead = workers, pin, ahead
+        self.labeller, self.label_workers = labeller, label_workers
         self.wait_s = 0.0
 
     def __iter__(self):
-        with ThreadPoolExecutor(self.workers, thread_name_prefix="evaluate-decode") as pool:
+        # The labels' pool starts no thread unless a labeller submits to it.
+        views = [view for batch in self.batches for view in batch]
+        window = 4 * self.label_workers if self.labeller is not None else 0  # labels held ahead: bounded memory
+        labels: list = []  # each view's labels (a future; None once copied into its batch)
+        with ThreadPoolExecutor(self.workers, thread_name_prefix="evaluate-decode") as pool, \
+                ThreadPoolExecutor(self.label_workers, thread_name_prefix="evaluate-labels") as label_pool:
+
+            def label_ahead(end: int) -> None:
+                while len(labels) < min(end, len(views)):
+                    labels.append(label_pool.submit(self.labeller, *views[len(labels)]))
+
+            label_ahead(window)
             # Each (LOD, camera)'s chunk index built once, in parallel, before the views race to build it.
             cameras = sorted({camera for batch in self.batches for camera, _ in batch})
             for job in [pool.submit(reader.has, camera, -1) for reader in self.readers.values() for camera in cameras]:
                 job.result()
             pending = [self._submit(pool, batch) for batch in self.batches[:self.ahead + 1]]
+            first = 0  # the batch's first view
             for b in range(len(self.batches)):
                 loaded, jobs = pending.pop(0)
+                if window:  # this batch's labels and `window` views after it
+                    label_ahead(first + len(loaded.views) + window)
                 start = time.perf_counter()
                 for job in jobs:
                     job.result()  # re-raises a decoding error naming its file
+                if loaded.labels is not None:
+                    for i in range(len(loaded.views)):
+                        loaded.labels[i].numpy()[...] = labels[first + i].result()
+                        labels[first + i] = None
                 self.wait_s += time.perf_counter() - start
+                first += len(loaded.views)
                 if b + self.ahead + 1 < len(self.batches):
                     pending.append(self._submit(pool, self.batches[b + self.ahead + 1]))
                 yield loaded
@@ -193,6 +227,8 @@ class BatchLoader:
         shape = (len(views), camera.height, camera.width)
         loaded = LoadedBatch(views, self._empty(*shape, 3), self._empty(*shape, dtype=torch.bool),
                              {level: self._empty(*shape, 3) for level in self.readers})
+        if self.labeller is not None:  # filled from the labels' own threads when the batch is due
+            loaded.labels = self._empty(*shape)
         jobs = []
         for i, view in enumerate(views):
             jobs.append(pool.submit(self._truth, view, loaded.truths[i].numpy(), loaded.masks[i].numpy()))
@@ -228,14 +264,15 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
     over the split's views that have ground truth, in one pass: each ground-truth view is decoded, masked and
     passed through the LPIPS and Inception networks once for all LODs. Without `inception` the FID is NaN with
     `fid_note`. With a `labeller` (true meshes), also PSNR/SSIM per region (REGION_KEYS). `seconds`, when given,
-    gets the wall time (`total_s`) and the time spent waiting for decoding (`decode_wait_s`) and for the device
-    (`device_wait_s`)."""
+    gets the wall time (`total_s`) and the time spent waiting for decoding and labels (`decode_wait_s`) and for the
+    device (`device_wait_s`)."""
     device = torch.device(device)
     rules = protocol(cfg.protocol)
     batches = view_batches(capture, split, cfg.batch_size)
     sizes = {name: (camera.width, camera.height) for name, camera in capture.cameras.items()}  # chunks checked against
     loader = BatchLoader(capture, {level: RenderReader(path, sizes) for level, path in level_dirs.items()}, batches,
-                         cfg.encode_workers, pin=device.type == "cuda")
+                         cfg.encode_workers, pin=device.type == "cuda", labeller=labeller,
+                         label_workers=cfg.label_workers or os.cpu_count() or 1)
     values: dict[int, list[dict[str, torch.Tensor]]] = {level: [] for level in level_dirs}
     fake_features = {level: FeatureStatistics() for level in level_dirs}
     real_features = FeatureStatistics()
@@ -252,9 +289,7 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
             reference = lpips_net.reference(yc) if lpips_net is not None else None
             if inception is not None:
                 real_features.update(inception(yc).double())
-            labels = None
-            if labeller is not None:
-                labels = torch.from_numpy(np.stack([labeller(cam, frame) for cam, frame in loaded.views])).to(device)
+            labels = loaded.labels.to(device, non_blocking=True) if loaded.labels is not None else None
             for level, renders in loaded.renders.items():
                 x = _unit_floats(renders, device)
                 values[level].append(_score(x, y, masks, rules, lpips_net, reference, labels, truth_only))
@@ -348,20 +383,24 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
     labeller = None
     if truth is not None:
         truth.require_frames(capture.split[split]["frames"], f"split {split!r}")
-        labeller = RegionLabeller(truth, capture.cameras)
+        labeller = RegionLabeller(truth, capture.cameras, LABELS)
         for level in levels:  # before any work: renders of an older render stage lack them
             SplatTrack.require(split_dir / f"lod{level}" / SPLATS)
     # Before the pass, as the splat tracks: renders without a timing record fail at once, not after scoring.
     timings = {level: read_record(split_dir / f"lod{level}" / "timing.json",
                                   "the render stage's timing record (splats, model_mb, fps, device)") for level in levels}
     seconds: dict = {}
-    results = evaluate_levels(capture, split, {level: split_dir / f"lod{level}" for level in levels}, cfg, lpips_net,
-                              inception, device, fid_note, labeller, seconds)
+    with ThreadPoolExecutor(1, thread_name_prefix="evaluate-geometry") as pool:
+        # The geometry metrics need only the splat tracks and the true meshes: on the host while the views are scored.
+        geometry = {level: pool.submit(_geometry, split_dir / f"lod{level}", capture, split, truth, cfg.geometry_frames)
+                    for level in (levels if truth is not None else [])}
+        results = evaluate_levels(capture, split, {level: split_dir / f"lod{level}" for level in levels}, cfg,
+                                  lpips_net, inception, device, fid_note, labeller, seconds)
+        geometry = {level: job.result() for level, job in geometry.items()}
     written = []
     for level, (table, summary) in results.items():
         level_dir = split_dir / f"lod{level}"
-        if truth is not None:
-            summary.update(ground_truth_geometry(_splat_track(level_dir, capture, split), truth, cfg.geometry_frames))
+        summary.update(geometry.get(level, {}))
         timing = {"fit_note": UNRECORDED_FIT_NOTE, **timings[level]}
         summary.update(split=split, lod=level, lpips_net=cfg.lpips_net, lpips_note=lpips_note, protocol=cfg.protocol,
                        protocol_note=rules.note if cfg.protocol != "ours" else "", weights_note=weights,
@@ -391,8 +430,14 @@ def evaluate_split(capture_dir: Path, split_dir: Path, split: str, output_dir: P
         "views_per_s": scored / seconds["total_s"] if seconds["total_s"] > 0 else math.nan})
     print(f"[evaluate] {split}: {views} views x {len(levels)} LODs in {seconds['total_s']:.1f} s "
           f"({scored / max(seconds['total_s'], 1e-9):.1f} views/s); waited {seconds['decode_wait_s']:.1f} s for "
-          f"decoding and {seconds['device_wait_s']:.1f} s for the device")
+          f"decoding{' and region labels' if truth is not None else ''} and {seconds['device_wait_s']:.1f} s for the "
+          "device")
     return written
+
+
+def _geometry(level_dir: Path, capture, split: str, truth: TrueMeshes, geometry_frames: int) -> dict[str, float]:
+    """The summary's geometry keys of one LOD's splat track (pig.metrics.geometry.ground_truth_geometry)."""
+    return ground_truth_geometry(_splat_track(level_dir, capture, split), truth, geometry_frames)
 
 
 def _splat_track(level_dir: Path, capture, split: str) -> SplatTrack:

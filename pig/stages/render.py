@@ -1,4 +1,5 @@
-"""Render stage: every test camera and frame of one split at every LOD, as 8-bit lossless chunks per camera.
+"""Render stage: every test camera and frame of one split at every LOD (or those of `--lod`), as 8-bit lossless
+chunks per camera.
 
 Storage (pig.data.render_store): one file per (LOD, camera, run of frames), encoded on worker threads, and a
 manifest; capture.json records the capture the views were rendered for (pig.data.capture_record). `--every-view`
@@ -154,8 +155,20 @@ def _to_u8(color: torch.Tensor) -> np.ndarray:
     return (color.clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()
 
 
+def chosen_levels(lods: list[int] | None, num_levels: int, checkpoint: Path) -> list[int]:
+    """The avatar's LOD indices `lods` asks for, ascending (negative ones count from the finest, -1); all when None."""
+    if lods is None:
+        return list(range(num_levels))
+    wrong = [lod for lod in lods if not -num_levels <= lod < num_levels]
+    if wrong or not lods:
+        raise ValueError(f"--lod {' '.join(map(str, lods))}: {checkpoint} has levels 0..{num_levels - 1} (or -1 for "
+                         f"the finest, -{num_levels} for the coarsest); give at least one")
+    return sorted({lod % num_levels for lod in lods})
+
+
 def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, cfg: EvaluateConfig,
-                 rasterizer: RasterizerConfig, overwrite: bool = False, every_view: bool | None = None) -> None:
+                 rasterizer: RasterizerConfig, overwrite: bool = False, every_view: bool | None = None,
+                 lods: list[int] | None = None) -> None:
     """Write `output`/lod{l}/{camera}/ chunks (pig.data.render_store), `output`/manifest.json and the capture's
     record `output`/capture.json; `output` may
     replace only an earlier render unless `overwrite`.
@@ -163,7 +176,8 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     Views are rendered a run of `cfg.chunk_frames` frames at a time, each frame at every LOD and camera, encoded on
     `cfg.encode_workers` threads. A killed run leaves its finished chunks beside `output`; a rerun with the same
     checkpoint, capture and settings renders only the missing ones. `every_view` (default `cfg.every_view`) also
-    writes every view as {frame:08d}.png with alpha and depth in {frame:08d}.exr."""
+    writes every view as {frame:08d}.png with alpha and depth in {frame:08d}.exr. `lods` (default: every LOD) limits
+    the LODs rendered (`chosen_levels`): the evaluate stage finds only those."""
     from pig.avatar.losses import fit_note
     from pig.data.capture import Capture
 
@@ -178,12 +192,12 @@ def render_split(checkpoint: Path, capture_dir: Path, split: str, output: Path, 
     model = renderer.model
     note = fit_note(terms["lpips"])  # passed on to the evaluate stage's summaries and the tables
     track_splats = (capture_dir / GT_MESHES).is_file()  # for the evaluate stage's geometry error and drift
-    levels = list(range(model.num_levels))
+    levels = chosen_levels(lods, model.num_levels, checkpoint)
     chunks = [frames[i:i + cfg.chunk_frames] for i in range(0, len(frames), cfg.chunk_frames)]
     # Everything the chunks depend on: a rerun with any of it changed starts afresh.
     settings = {"checkpoint_sha256": checkpoint_sha256, "capture": capture.fingerprint(), "split": split,
                 "chunk_format": FORMAT, "codec": cfg.render_codec, "chunk_frames": cfg.chunk_frames,
-                "every_view": every_view, "rasterizer": asdict(rasterizer), "device": str(device)}
+                "every_view": every_view, "rasterizer": asdict(rasterizer), "device": str(device), "levels": levels}
     with resumable_dir(output, "render", settings) as work, \
             progress_bar(total=len(levels) * len(frames), desc=f"render {split}", unit="frame") as bar:
         write_json(work / RECORD, capture_record(capture))  # the capture these renders are for (evaluate checks it)
@@ -275,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier render of a split")
+    parser.add_argument("--lod", type=int, nargs="+", default=None,
+                        help="LODs to render (default: all; -1 is the finest): a finest-only evaluation renders one")
     parser.add_argument("--every-view", action="store_true", default=None,
                         help="also write every view as PNG with alpha and depth in OpenEXR (evaluate.every_view)")
     args = parser.parse_args(argv)
@@ -282,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_section(preset, "evaluate", EvaluateConfig, {"device": args.device} if args.device else None)
     rasterizer = load_section(preset, "rasterizer", RasterizerConfig)
     render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer, args.overwrite,
-                 args.every_view)
+                 args.every_view, args.lod)
     return 0
 
 
