@@ -31,7 +31,8 @@ The scaling table also gives the gradients' bytes all-reduced per step and their
 with the kernel profile the all-reduce's implied bus bandwidth.
 
 `--cg-lagged`: every run with `precond.cg_lagged` on (the anchors' CG without a blocking read on its owner; issue 42),
-its folder replacing the same GPU count's: run it after the baseline's command.
+its folder replacing the same GPU count's: run it after the baseline's command. `--compile-mode reduce-overhead`
+likewise with `fit.compile_mode` (the step's compiled regions replayed as CUDA graphs).
 
 `--parity ITERATIONS` (with `--repeats R`): R fits of that many iterations per GPU count, each ending with the
 held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick).
@@ -194,15 +195,16 @@ def rank_hooks(out: str, warmup: int, iterations: int, profile: int, kernels: in
 
 
 def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, seed: int, shard_solves: bool,
-                 cg_lagged: bool = False) -> Path:
+                 cg_lagged: bool = False, compile_mode: str = "default") -> Path:
     """The `paper` preset cut to `iterations`, LPIPS on random weights, no checkpoint inside the run; `cg_lagged`:
-    precond.cg_lagged on (the anchors' CG without a blocking read)."""
+    precond.cg_lagged on (the anchors' CG without a blocking read); `compile_mode`: fit.compile_mode."""
     preset = load_preset("paper")
     preset.pop("_path")
     preset["fit"].update(iterations=iterations, eval_every=eval_every, checkpoint_minutes=10**6, lpips_weights="random",
                          seed=seed, shard_solves=shard_solves)
     if cg_lagged:
         preset["precond"]["cg_lagged"] = True
+    preset["fit"]["compile_mode"] = compile_mode
     path = workdir / f"preset_{name}.yaml"
     path.write_text(yaml.safe_dump(preset))
     return path
@@ -229,7 +231,7 @@ def run_one(args) -> int:
     out = workdir / name
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
-    preset = write_preset(workdir, name, iterations, eval_every, args.seed, sharded, args.cg_lagged)
+    preset = write_preset(workdir, name, iterations, eval_every, args.seed, sharded, args.cg_lagged, args.compile_mode)
     fit_dir = out / "fit"
     t0 = time.perf_counter()
     if gpus == 1:
@@ -244,7 +246,8 @@ def run_one(args) -> int:
               "heldout_psnr": float(last["heldout_psnr"]), "train_s": float(last["train_s"]),
               "iterations": int(last["iteration"]), "device": torch.cuda.get_device_name(),
               "capture": describe_capture(capture), "warmup": args.warmup, "timed": args.iterations - args.warmup,
-              "profile_phases": args.profile_phases, "kernel_profile": args.kernel_profile, "cg_lagged": args.cg_lagged}
+              "profile_phases": args.profile_phases, "kernel_profile": args.kernel_profile, "cg_lagged": args.cg_lagged,
+              "compile_mode": args.compile_mode}
     (out / "run.json").write_text(json.dumps(record))
     return 0
 
@@ -333,6 +336,9 @@ def main(argv=None) -> int:
     parser.add_argument("--cg-lagged", action="store_true",
                         help="precond.cg_lagged on in every run: the anchors' CG without a blocking read (a run "
                              "replaces the folder of the same GPU count and mode: after the baseline, or another --workdir)")
+    parser.add_argument("--compile-mode", choices=("default", "reduce-overhead"), default="default",
+                        help="fit.compile_mode in every run (reduce-overhead: CUDA graphs; a run replaces the folder of "
+                             "the same GPU count and mode: after the baseline, or another --workdir)")
     parser.add_argument("--run", type=int, default=None, help=argparse.SUPPRESS)  # one GPU count, in this process
     parser.add_argument("--tag", default="a", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -348,7 +354,8 @@ def main(argv=None) -> int:
     if not args.collect and (args.new_capture or not (args.workdir / CAPTURE).exists()):
         fit_gpu_main(["--workdir", str((args.workdir / CAPTURE).parent), "--frames", str(args.frames), "--cameras",
                       str(args.cameras), "--capture-only"])
-    base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed)] + ["--cg-lagged"] * args.cg_lagged
+    base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed), "--compile-mode",
+            args.compile_mode] + ["--cg-lagged"] * args.cg_lagged
     if args.parity:
         for repeat in range(0 if args.collect else args.repeats):
             for gpus, mode in runs(args.gpus, args.shard_solves):  # alternating, so that a drift touches each alike
@@ -405,8 +412,9 @@ def print_tables(results: list[dict], args, capture: Path) -> None:
                        for r in results})
     windows = sorted({(r.get("timed", args.iterations - args.warmup), r.get("warmup", args.warmup)) for r in results})
     lagged = sorted({"on" if r.get("cg_lagged") else "off" for r in results})
+    modes = sorted({r.get("compile_mode", "default") for r in results})
     print(f"\ndevice: {', '.join(devices)}; `paper` preset, LPIPS on random weights, precond.cg_lagged "
-          f"{'/'.join(lagged)}; capture {'; '.join(captures)}; "
+          f"{'/'.join(lagged)}, fit.compile_mode {'/'.join(modes)}; capture {'; '.join(captures)}; "
           + ", ".join(f"{timed} timed iterations after {warmup}" for timed, warmup in windows)
           + "; NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1")
     print(f"(speed-up against the first row, {label(base)}; all-reduced: the gradients' bytes per step and buckets, "

@@ -65,14 +65,15 @@ class AnchorDecoder(nn.Module):
         # step, which waits for the device's queue to drain (a host synchronisation). Not in the state dict.
         self.register_buffer("identity", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
 
-    def set_precision(self, precision: str, compiled: bool = False) -> None:
+    def set_precision(self, precision: str, compiled: bool = False, mode: str = "default") -> None:
         """MLPs in "float32", "tf32" (set by the caller through torch.backends) or "bf16" autocast with float32
-        weights and outputs; `compiled` compiles them with torch.compile (same parameters and state dict)."""
+        weights and outputs; `compiled` compiles them with torch.compile in `mode` (same parameters and state
+        dict)."""
         self.autocast = precision == "bf16"
         if compiled and self._compiled_mlps is None:
             # A method of this file, not nn.Module.compile(): Dynamo skips the frames of torch.nn's own modules
             # (nn.Sequential) that Module.compile() hands it, and they ran eagerly without a word (torch 2.13).
-            self._compiled_mlps = torch.compile(self._run_mlps)
+            self._compiled_mlps = torch.compile(self._run_mlps, mode=mode)
 
     def _run_mlps(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(shape, colour) raw MLP outputs, in bf16 autocast when `autocast` is set."""

@@ -13,6 +13,7 @@ from pig.config import Bounds, ConfigError
 from pig.metrics.lpips import MIN_SIDE
 
 PRECISIONS = ("float32", "tf32", "bf16")
+COMPILE_MODES = ("default", "reduce-overhead")
 
 
 @dataclass
@@ -83,6 +84,11 @@ class FitConfig:
     # Speed levers (module docstring).
     precision: Literal["float32", "tf32", "bf16"] = "float32"
     compile: bool = False
+    # torch.compile's mode for the training step's compiled regions (decoders, posing, L1 + SSIM, LPIPS network):
+    # "reduce-overhead" replays each region as CUDA graphs (a graph launch in place of its kernels' launches: the
+    # 4-GPU step is bound by its host's launches, benchmarks/NOTES.md, "One fit on several GPUs"), each iteration a
+    # new step of torch's CUDA-graph trees. A lever, off until a GPU measures it; no effect on a CPU.
+    compile_mode: Literal["default", "reduce-overhead"] = "default"
     compile_posing: bool = False
     batched_render: bool = False
     fused_adam: bool = False
@@ -108,6 +114,8 @@ class FitConfig:
                 raise ConfigError(f"fit.{name} must be at least {least}, found {getattr(self, name)}")
         if self.precision not in PRECISIONS:
             raise ConfigError(f"fit.precision must be one of {PRECISIONS}, found {self.precision!r}")
+        if self.compile_mode not in COMPILE_MODES:
+            raise ConfigError(f"fit.compile_mode must be one of {COMPILE_MODES}, found {self.compile_mode!r}")
         if not 0 <= self.average_decay < 1:
             raise ConfigError(f"fit.average_decay must lie in [0, 1), found {self.average_decay}")
         if not 0 <= self.average_start <= 1:

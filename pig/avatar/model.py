@@ -131,13 +131,13 @@ class AvatarModel(nn.Module):
     def _posed_splats_sync_free(self, *args) -> Gaussians:
         return self.posed_splats(*args, sync_free=True)
 
-    def compile_posing(self) -> None:
+    def compile_posing(self, mode: str = "default") -> None:
         """Training steps run `posed_splats` through torch.compile: the body's rigid chain and the transport's
         3 x 3 products fuse into a few kernels (pig.body.rotation.small_matmul), forward and backward. It runs
         sync-free (the same frames, pig.body.transport.surface_frames), so the step has no host synchronisation
-        there; one static graph per LOD."""
+        there; one static graph per LOD. `mode`: torch.compile's."""
         if self._compiled_posing is None:
-            self._compiled_posing = torch.compile(self._posed_splats_sync_free, dynamic=False)
+            self._compiled_posing = torch.compile(self._posed_splats_sync_free, dynamic=False, mode=mode)
 
     def anchor_features(self, x: torch.Tensor, lod: int) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Grid features z (n, d) of the level's anchors among canonical anchors `x` (N, 3), and the refiner's

@@ -8,6 +8,7 @@ Speed levers (preset section `fit`, each off in the CPU presets; benchmarks/NOTE
 `precision` (decoders in TF32 or bf16 autocast, float32 master weights), `compile` (torch.compile of the
 decoder MLPs and of the L1 + SSIM loss, with SSIM's blur as shifted sums that compile into one kernel),
 `compile_posing` (torch.compile of the body model, transport and splat assembly of a training step),
+`compile_mode` (those regions and the LPIPS network's replayed as CUDA graphs with "reduce-overhead"),
 `batched_render` (one rasterizer call and one loss evaluation for all timesteps and views), `lpips_bf16_head`,
 `lpips_compile` and `lpips_crop_sliced` (the LPIPS term's, pig.metrics.lpips.TrainingLPIPS), `fused_adam`
 (torch's fused Adam kernels instead of a loop over tensors), `log_every` (loss terms read back to the host
@@ -172,11 +173,11 @@ class LossTerms:
     def __init__(self, cfg: FitConfig, background: torch.Tensor, lpips, compiled: bool):
         self.cfg, self.background = cfg, background
         self.lpips = None if lpips is None else TrainingLPIPS(lpips, cfg.precision == "bf16", cfg.lpips_bf16_head,
-                                                                cfg.lpips_compile)
+                                                                cfg.lpips_compile, cfg.compile_mode)
         weights = (cfg.weight_l1, cfg.weight_ssim, 0.0)
         blur = "shift" if compiled else "conv"
         l1_ssim = lambda render, target, band: image_loss(render, target, band, background, weights, None, blur)
-        self._l1_ssim = torch.compile(l1_ssim) if compiled else l1_ssim
+        self._l1_ssim = torch.compile(l1_ssim, mode=cfg.compile_mode) if compiled else l1_ssim
         self.at(0, 0.0)
 
     def at(self, iteration: int, progress: float) -> None:
@@ -374,9 +375,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     settings = {"fit": asdict(fit_cfg), "rasterizer": asdict(raster)}  # the other sections a resume must match
     torch.manual_seed(fit_cfg.seed)
     model = build_avatar(spec).to(device)
-    model.decoder.set_precision(fit_cfg.precision, compiled=fit_cfg.compile)
+    model.decoder.set_precision(fit_cfg.precision, compiled=fit_cfg.compile, mode=fit_cfg.compile_mode)
     if fit_cfg.compile_posing:
-        model.compile_posing()
+        model.compile_posing(fit_cfg.compile_mode)
     optimizers = build_optimizers(model, fit_cfg.lr_decoders, fit_cfg.lr_refine, precond_cfg, fused=fit_cfg.fused_adam)
     base_lrs = [[group["lr"] for group in opt.param_groups] for opt in optimizers]  # the schedule scales these
     average = WeightAverage(optimizers, fit_cfg.average_decay) if fit_cfg.average_decay > 0 else None
@@ -514,6 +515,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 for group, lr in zip(opt.param_groups, lrs):
                     group["lr"] = lr * factor
             loss.at(i, done)
+            if fit_cfg.compile_mode == "reduce-overhead":  # the last step's graph outputs may be overwritten from here
+                torch.compiler.cudagraph_mark_step_begin()
             with phase("sample"):
                 batch = batches.get(i)
             waits.append(batch.wait_s)

@@ -204,13 +204,14 @@ class TrainingLPIPS(nn.Module):
 
     `bf16`: the backbone under bf16 autocast (float32 weights). `bf16_head`: inputs channels-last and `head` in the
     features' bf16, not the reference's float32 normalisation. `compiled`: torch.compile of the whole (static
-    shapes: one graph per input shape). All off, this is `net.forward`.
+    shapes: one graph per input shape), in `mode`. All off, this is `net.forward`.
     """
 
-    def __init__(self, net: LPIPS, bf16: bool = False, bf16_head: bool = False, compiled: bool = False):
+    def __init__(self, net: LPIPS, bf16: bool = False, bf16_head: bool = False, compiled: bool = False,
+                 mode: str = "default"):
         super().__init__()
         self.net, self.bf16, self.bf16_head = net, bf16, bf16_head
-        self._distance = torch.compile(self._eager, dynamic=False) if compiled else self._eager
+        self._distance = torch.compile(self._eager, dynamic=False, mode=mode) if compiled else self._eager
 
     def _eager(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         with torch.autocast(x.device.type, torch.bfloat16, enabled=self.bf16):
