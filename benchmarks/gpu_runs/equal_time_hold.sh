@@ -64,12 +64,12 @@ case $1 in
       nvidia-smi --query-gpu=index,name,memory.total --format=csv
       rm -rf $SRC $RES /tmp/s /tmp/w_* /tmp/cc; mkdir -p $RES /tmp/cc; echo $seed > $RES/seed
       cp -r . $SRC; cd $SRC
-      export PYTHONPATH=/tmp/site:$SRC TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
+      . benchmarks/gpu_runs/kit_env.sh $SRC
       ( time python3 benchmarks/fit_gpu.py --workdir /tmp/s --seed $seed --frames 10 --capture-only ) > $RES/capture.txt 2>&1
       tail -4 $RES/capture.txt
       start_round "$@" ;;
   n)  shift; cd $SRC || exit 1
-      export PYTHONPATH=/tmp/site:$SRC TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
+      . benchmarks/gpu_runs/kit_env.sh $SRC
       finished || { echo "the last round has not ended"; exit 1; }
       start_round "$@" ;;
   w)  end=$((SECONDS + ${2:-570}))

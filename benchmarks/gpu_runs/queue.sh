@@ -27,8 +27,8 @@ case $1 in
       rm -rf $Q $SRC; mkdir -p $Q $SRC
       tar -c --exclude=./.gpu --exclude=./.git --exclude=./results . | tar -x -C $SRC
       n=0; for cmd in "$@"; do n=$((n + 1)); printf '%s\n' "$cmd" > "$Q/$(printf %02d $n).cmd"; done
-      export Q PYTHONPATH=/tmp/site:$SRC TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
-      cd $SRC && setsid bash -c '
+      export Q; cd $SRC && . benchmarks/gpu_runs/kit_env.sh $SRC
+      setsid bash -c '
         for file in $Q/*.cmd; do
           out=${file%.cmd}.txt
           echo "$(basename $file .cmd) start $(date +%T): $(head -c 200 $file)" >> $Q/status.txt
