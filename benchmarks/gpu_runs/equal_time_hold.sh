@@ -6,9 +6,9 @@
 # raw results under $OUT (results.tar: every fit's output, train log and JSON), then committed under
 # benchmarks/gpu_runs/runNN.
 #   a SEED BUDGET_S VARIANT...   set-up, the subject (24 cameras x 10 frames at 1330 x 1150, the preset's 16
-#                                processes: 203-231 s on the 64-CPU 4-GPU hosts, the workers started one after
-#                                another; ~10-25 s predicted with them started together: benchmarks/NOTES.md;
-#                                capture.txt's "render workers" table says where the time went), then the first round: one
+#                                processes: 19.3 s on a 64-CPU 4-GPU host, run33; capture.txt's "render workers"
+#                                table says where the time went), gsplat's extension loaded once (kit_env.sh: a
+#                                rebuild, if the machine needs one, before the fits start), then the first round: one
 #                                fit per GPU, started detached from a copy under /tmp. A VARIANT may carry
 #                                overrides after a colon (fit_gpu.py --variant), e.g. pig:fit.average_decay=0.99; a
 #                                fit with a weight average is evaluated twice, the average and then its last iterate
