@@ -335,7 +335,7 @@ def main(argv=None) -> int:
                         help="torch.compile's artifacts: loaded from this file first if it exists, written to it "
                              "once the first variant's timed window ends (another machine skips most compilation)")
     args = parser.parse_args(argv)
-    if not torch.cuda.is_available():
+    if not (args.capture_only or torch.cuda.is_available()):  # the subject alone needs no GPU
         print("fit_gpu: no CUDA device", file=sys.stderr)
         return 1
     profile = load_preset(args.preset)

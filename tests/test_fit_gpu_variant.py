@@ -33,3 +33,17 @@ def test_cpu_default_candidate_names_pick_the_presets_method_variant():
     assert method_variant("pig_uniform", variants) == "pig"
     assert method_variant("lod_1of1", variants) == "lod_1of1"
     assert method_variant("default", variants) == method_variant("no", variants) == "pig"
+
+
+def test_capture_only_makes_the_subject_without_a_gpu(tmp_path, monkeypatch):
+    """`--capture-only` generates and preprocesses the subject, which needs no GPU (a CPU machine prepares it)."""
+    import torch
+    from fit_gpu import main
+
+    from pig.data.capture import Capture
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert main(["--workdir", str(tmp_path), "--preset", "test", "--frames", "2", "--cameras", "3", "--capture-only"]) == 0
+    capture = Capture.load(tmp_path / "capture", cache_mb=0)
+    assert len(capture.cameras) == 3
+    assert main(["--workdir", str(tmp_path), "--preset", "test", "--frames", "2", "--reuse-capture"]) == 1  # a fit does
