@@ -32,7 +32,9 @@ with the kernel profile the all-reduce's implied bus bandwidth.
 
 `--cg-lagged`: every run with `precond.cg_lagged` on (the anchors' CG without a blocking read on its owner; issue 42),
 its folder replacing the same GPU count's: run it after the baseline's command. `--compile-mode reduce-overhead`
-likewise with `fit.compile_mode` (the step's compiled regions replayed as CUDA graphs).
+likewise with `fit.compile_mode` (the step's compiled regions replayed as CUDA graphs), and `--pin-cpus` with each rank
+pinned to its own share of the cores (`pig fit --pin-cpus`; run33: a rank's host time per kernel ~2x the one
+process's, 48.5 ms for 1157 kernels against 42.3 for 1988).
 
 `--parity ITERATIONS` (with `--repeats R`): R fits of that many iterations per GPU count, each ending with the
 held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick).
@@ -239,7 +241,7 @@ def run_one(args) -> int:
         fit(capture, fit_dir, str(preset), device="cuda", on_iteration=probe.on_iteration if probe else None,
             **({"phase": probe.phase} if probe else {}))
     else:
-        fit_parallel(capture, fit_dir, str(preset), "pig", gpus, "cuda", rank_hooks=hooks)
+        fit_parallel(capture, fit_dir, str(preset), "pig", gpus, "cuda", rank_hooks=hooks, pin_cpus=args.pin_cpus)
     with open(fit_dir / "train_log.csv", newline="") as file:
         last = list(csv.DictReader(file))[-1]
     record = {"gpus": gpus, "sharded": sharded, "name": name, "fit_s": time.perf_counter() - t0,
@@ -247,7 +249,7 @@ def run_one(args) -> int:
               "iterations": int(last["iteration"]), "device": torch.cuda.get_device_name(),
               "capture": describe_capture(capture), "warmup": args.warmup, "timed": args.iterations - args.warmup,
               "profile_phases": args.profile_phases, "kernel_profile": args.kernel_profile, "cg_lagged": args.cg_lagged,
-              "compile_mode": args.compile_mode}
+              "pin_cpus": args.pin_cpus, "compile_mode": args.compile_mode}
     (out / "run.json").write_text(json.dumps(record))
     return 0
 
@@ -339,6 +341,9 @@ def main(argv=None) -> int:
     parser.add_argument("--compile-mode", choices=("default", "reduce-overhead"), default="default",
                         help="fit.compile_mode in every run (reduce-overhead: CUDA graphs; a run replaces the folder of "
                              "the same GPU count and mode: after the baseline, or another --workdir)")
+    parser.add_argument("--pin-cpus", action="store_true",
+                        help="each rank pinned to its own share of the cores (pig fit --pin-cpus; a run replaces the "
+                             "folder of the same GPU count and mode: after the baseline, or another --workdir)")
     parser.add_argument("--run", type=int, default=None, help=argparse.SUPPRESS)  # one GPU count, in this process
     parser.add_argument("--tag", default="a", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -355,7 +360,7 @@ def main(argv=None) -> int:
         fit_gpu_main(["--workdir", str((args.workdir / CAPTURE).parent), "--frames", str(args.frames), "--cameras",
                       str(args.cameras), "--capture-only"])
     base = [sys.executable, __file__, "--workdir", str(args.workdir), "--seed", str(args.seed), "--compile-mode",
-            args.compile_mode] + ["--cg-lagged"] * args.cg_lagged
+            args.compile_mode] + ["--cg-lagged"] * args.cg_lagged + ["--pin-cpus"] * args.pin_cpus
     if args.parity:
         for repeat in range(0 if args.collect else args.repeats):
             for gpus, mode in runs(args.gpus, args.shard_solves):  # alternating, so that a drift touches each alike
@@ -413,8 +418,10 @@ def print_tables(results: list[dict], args, capture: Path) -> None:
     windows = sorted({(r.get("timed", args.iterations - args.warmup), r.get("warmup", args.warmup)) for r in results})
     lagged = sorted({"on" if r.get("cg_lagged") else "off" for r in results})
     modes = sorted({r.get("compile_mode", "default") for r in results})
+    pinned = sorted({"on" if r.get("pin_cpus") else "off" for r in results})
     print(f"\ndevice: {', '.join(devices)}; `paper` preset, LPIPS on random weights, precond.cg_lagged "
-          f"{'/'.join(lagged)}, fit.compile_mode {'/'.join(modes)}; capture {'; '.join(captures)}; "
+          f"{'/'.join(lagged)}, fit.compile_mode {'/'.join(modes)}, ranks pinned to CPUs {'/'.join(pinned)}; "
+          f"capture {'; '.join(captures)}; "
           + ", ".join(f"{timed} timed iterations after {warmup}" for timed, warmup in windows)
           + "; NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1")
     print(f"(speed-up against the first row, {label(base)}; all-reduced: the gradients' bytes per step and buckets, "

@@ -1,5 +1,6 @@
 """Data-parallel fit (pig.avatar.distributed) on the CPU with gloo: the split of an iteration's views, 2 processes
 against 1 on one step (gradients, loss, weights), rank 0's clock deciding for all, resume across process counts."""
+import ast
 import csv
 import functools
 import os
@@ -26,7 +27,8 @@ from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.config import AvatarConfig
 from pig.avatar.distributed import (GradientReducer, Parallel, ShardedSampler, SolveShards, shard_loss, shard_picks,
                                     solve_costs, solve_owners, split_pairs)
-from pig.avatar.parallel_fit import RankHooks, fit_parallel, rank_threads
+from pig.avatar.parallel_fit import (RankHooks, fit_parallel, gpu_local_cpus, parse_cpu_list, rank_cpu_sets,
+                                     rank_threads)
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.losses import lpips_term
 from pig.avatar.training import LossTerms, fit, iteration_loss
@@ -491,6 +493,66 @@ def test_each_rank_takes_its_share_of_the_cores(small_capture, tmp_path, monkeyp
         assert [int((folder / f"threads{rank}").read_text()) for rank in range(WORLD)] == [expected] * WORLD, name
     with pytest.raises(ValueError, match="cores must be at least 1"):
         fit_parallel(small_capture, tmp_path / "none", preset, "pig", WORLD, "cpu", cores=0)
+
+
+def _placement():
+    """This rank's CPUs, torch threads and OpenCV threads, as text."""
+    import cv2
+
+    return repr((sorted(os.sched_getaffinity(0)), torch.get_num_threads(), cv2.getNumThreads()))
+
+
+def _placement_hooks(folder: str, rank: int) -> RankHooks:
+    return RankHooks(on_iteration=_WriteOnce("placement", _placement, folder, rank))
+
+
+def test_rank_cpu_sets_are_disjoint_balanced_and_local_first():
+    assert rank_cpu_sets(4, list(range(64))) == [list(range(16 * r, 16 * r + 16)) for r in range(4)]
+    sets = rank_cpu_sets(3, [0, 1, 2, 3, 4, 5, 6, 9])  # 8 CPUs, 3 ranks: 3 + 3 + 2, every one used once
+    assert sorted(cpu for s in sets for cpu in s) == [0, 1, 2, 3, 4, 5, 6, 9] and [len(s) for s in sets] == [3, 3, 2]
+    # Two NUMA nodes of 8, GPUs 0-1 on the second, 2-3 on the first: each rank takes its GPU's node.
+    second, first = set(range(8, 16)), set(range(8))
+    assert rank_cpu_sets(4, list(range(16)), [second, second, first, first]) == [
+        [8, 9, 10, 11], [12, 13, 14, 15], [0, 1, 2, 3], [4, 5, 6, 7]]
+    # A node with fewer CPUs than its ranks need lends the rest from the others; unknown locality is no preference.
+    assert rank_cpu_sets(2, [0, 1, 2, 3], [{0}, None]) == [[0, 1], [2, 3]]
+    assert rank_cpu_sets(2, [0, 1, 2, 3], [{3}, {3}]) == [[0, 3], [1, 2]]
+    with pytest.raises(ValueError, match="a CPU a rank"):
+        rank_cpu_sets(3, [0, 1])
+
+
+def test_gpu_local_cpus_reads_the_devices_numa_node(tmp_path, monkeypatch):
+    assert parse_cpu_list("0-3,8,10-11\n") == {0, 1, 2, 3, 8, 10, 11}
+    device = tmp_path / "0000:1b:00.0"
+    device.mkdir()
+    (device / "local_cpulist").write_text("32-63\n")
+    props = type("Props", (), {"pci_bus_id": 0x1B, "pci_device_id": 0, "pci_domain_id": 0})
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda index: props)
+    assert gpu_local_cpus(0, tmp_path) == set(range(32, 64))
+    props.pci_bus_id = 0x3C  # no such device: no preference
+    assert gpu_local_cpus(0, tmp_path) is None
+    monkeypatch.setattr(torch.cuda, "get_device_properties", lambda index: object())  # a torch that does not tell
+    assert gpu_local_cpus(0, tmp_path) is None
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU affinity is Linux's")
+def test_pinned_ranks_run_on_their_own_cpus(small_capture, tmp_path, capsys):
+    allowed = sorted(os.sched_getaffinity(0))
+    if len(allowed) < WORLD:
+        pytest.skip(f"{WORLD} ranks need {WORLD} CPUs")
+    preset = write_test_preset(tmp_path, iterations=1, eval_every=10**6, cpu_threads=0)
+    fit_parallel(small_capture, tmp_path / "out", preset, "pig", WORLD, "cpu", progress_s=1e6, timeout_s=120,
+                 rank_hooks=functools.partial(_placement_hooks, str(tmp_path)), pin_cpus=True)
+    placed = [ast.literal_eval((tmp_path / f"placement{rank}").read_text()) for rank in range(WORLD)]
+    assert [cpus for cpus, _, _ in placed] == rank_cpu_sets(WORLD, allowed)
+    assert all(threads == opencv == len(cpus) for cpus, threads, opencv in placed)
+    assert sorted(os.sched_getaffinity(0)) == allowed  # the starting process stays where it was
+
+    from pig.stages.fit import main
+
+    with pytest.raises(SystemExit):
+        main(["--capture", str(small_capture), "--output", str(tmp_path / "o"), "--pin-cpus"])
+    assert "--pin-cpus shares the cores out" in capsys.readouterr().err
 
 
 def test_fit_stage_gpus_option(small_capture, tmp_path, capsys):

@@ -51,10 +51,62 @@ def rank_threads(processes: int, cores: int) -> int:
     return max(1, cores // processes)
 
 
+def parse_cpu_list(text: str) -> set[int]:
+    """A Linux CPU list ("0-31,64-95", as /sys's local_cpulist writes it) as a set of CPU numbers."""
+    cpus: set[int] = set()
+    for part in text.strip().split(","):
+        if part:
+            first, _, last = part.partition("-")
+            cpus.update(range(int(first), int(last or first) + 1))
+    return cpus
+
+
+def gpu_local_cpus(index: int, sysfs: Path = Path("/sys/bus/pci/devices")) -> set[int] | None:
+    """The CPUs of CUDA device `index`'s NUMA node (its PCI device's local_cpulist), or None where torch or the
+    system does not tell."""
+    props = torch.cuda.get_device_properties(index)
+    bus = getattr(props, "pci_bus_id", None)
+    if bus is None:
+        return None
+    path = sysfs / f"{getattr(props, 'pci_domain_id', 0):04x}:{bus:02x}:{getattr(props, 'pci_device_id', 0):02x}.0" / "local_cpulist"
+    try:
+        return parse_cpu_list(path.read_text()) or None
+    except (OSError, ValueError):
+        return None
+
+
+def rank_cpu_sets(processes: int, allowed: list[int], near: list[set[int] | None] | None = None) -> list[list[int]]:
+    """Disjoint sets of the `allowed` CPUs, one a rank, their sizes differing by one at most; where `near` gives a
+    rank's device-local CPUs (its GPU's NUMA node), its set is drawn from those first. Each rank then launches its
+    kernels from cores no other rank's threads (OpenMP's, OpenCV's, the view loader's) run on."""
+    if not 1 <= processes <= len(allowed):
+        raise ValueError(f"rank_cpu_sets: {processes} ranks for {len(allowed)} CPUs; pinning needs a CPU a rank at least")
+    free = sorted(set(allowed))
+    base, extra = divmod(len(free), processes)
+    sets = []
+    for rank in range(processes):
+        size = base + (rank < extra)
+        local = near[rank] if near is not None and near[rank] else set()
+        chosen = [cpu for cpu in free if cpu in local][:size]
+        chosen += [cpu for cpu in free if cpu not in chosen][:size - len(chosen)]
+        free = [cpu for cpu in free if cpu not in chosen]
+        sets.append(sorted(chosen))
+    return sets
+
+
+def pin_rank(cpus: list[int]) -> None:
+    """This process onto `cpus`, with as many torch intra-op and OpenCV threads."""
+    import cv2
+
+    os.sched_setaffinity(0, cpus)
+    torch.set_num_threads(len(cpus))
+    cv2.setNumThreads(len(cpus))
+
+
 def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, processes: int, device_type: str,
                  overwrite: bool = False, progress_s: float | None = None, tensorboard: bool = False,
                  rank_hooks: Callable[[int], RankHooks] | None = None, timeout_s: float = DEFAULT_TIMEOUT_S,
-                 cores: int | None = None) -> Path:
+                 cores: int | None = None, pin_cpus: bool = False) -> Path:
     """Fit one avatar with `processes` processes, on as many CUDA devices (`device_type` "cuda": cuda:0..N-1 of
     those visible, NCCL) or on the CPU ("cpu": gloo); returns the path of avatar.pt, which rank 0 writes.
 
@@ -63,7 +115,8 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
     its clock and callbacks (tests, benchmarks); `timeout_s` bounds a collective's wait. `cores`: the CPU threads the
     fit may use, shared out among the ranks as their torch intra-op threads (`rank_threads`; default: the cores this
     process may run on, unless OMP_NUM_THREADS is set, which torch then reads in each rank; on the CPU the preset's
-    fit.cpu_threads where set, as in a one-process CPU fit)."""
+    fit.cpu_threads where set, as in a one-process CPU fit). `pin_cpus`: each rank pinned to its own share of those
+    cores (rank_cpu_sets, its GPU's NUMA node first), with as many torch and OpenCV threads."""
     if processes < 2:
         raise ValueError(f"fit_parallel: expected 2 or more processes, found {processes}")
     if device_type == "cuda":
@@ -75,6 +128,11 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
         raise ValueError(f"fit_parallel: device type must be 'cuda' or 'cpu', found {device_type!r}")
     if cores is not None and cores < 1:
         raise ValueError(f"fit_parallel: cores must be at least 1, found {cores}")
+    cpu_sets = None
+    if pin_cpus:
+        allowed = sorted(os.sched_getaffinity(0))[:cores]
+        near = [gpu_local_cpus(rank) for rank in range(processes)] if device_type == "cuda" else None
+        cpu_sets = rank_cpu_sets(processes, allowed, near)
     output_dir, capture_dir = Path(output_dir), Path(capture_dir)
     with output_lock(output_dir, "fit"):
         # Refused here, before any process starts; rank 0 then writes these.
@@ -84,7 +142,7 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
         args = (store.port, processes, device_type, str(capture_dir), str(output_dir), preset_name, variant,
                 LOG_INTERVAL_S if progress_s is None else progress_s, tensorboard, rank_hooks, timeout_s,
                 None if cores is None and "OMP_NUM_THREADS" in os.environ
-                else rank_threads(processes, cores or host_cores()))
+                else rank_threads(processes, cores or host_cores()), cpu_sets)
         try:
             start_processes(_rank_main, args=args, nprocs=processes, join=True, start_method="spawn")
         except (ProcessRaisedException, ProcessExitedException) as err:
@@ -101,10 +159,12 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
 
 def _rank_main(rank: int, port: int, world: int, device_type: str, capture_dir: str, output_dir: str, preset_name: str,
                variant: str, progress_s: float, tensorboard: bool, rank_hooks, timeout_s: float,
-               threads: int | None) -> None:
-    """One rank of fit_parallel: joins the group, fits (`threads` intra-op threads where given; on the CPU the
-    preset's fit.cpu_threads replaces them where set), leaves."""
-    if threads is not None:
+               threads: int | None, cpu_sets: list[list[int]] | None = None) -> None:
+    """One rank of fit_parallel: joins the group, fits (`threads` intra-op threads where given, or pinned to its
+    `cpu_sets` entry; on the CPU the preset's fit.cpu_threads replaces them where set), leaves."""
+    if cpu_sets is not None:
+        pin_rank(cpu_sets[rank])
+    elif threads is not None:
         torch.set_num_threads(threads)
     timeout = timedelta(seconds=timeout_s)
     store = dist.TCPStore("127.0.0.1", port, world, is_master=False, timeout=timeout)

@@ -31,6 +31,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="torch CPU threads of a CPU fit (default: the preset's fit.cpu_threads; the workflow passes "
                              "the rule's threads); with --gpus N, the threads its N processes share out (default: the "
                              "cores this process may run on)")
+    parser.add_argument("--pin-cpus", action="store_true",
+                        help="with --gpus N: each process pinned to its own share of the cores (its GPU's NUMA node "
+                             "first), with as many torch and OpenCV threads, so that no rank's threads slow another's "
+                             "kernel launches")
     parser.add_argument("--progress-seconds", type=float, default=LOG_INTERVAL_S, metavar="SECONDS",
                         help="seconds between progress lines (iteration, loss, held-out PSNR, time left) on stderr "
                              f"(default: {LOG_INTERVAL_S:g}; --quiet: none)")
@@ -46,11 +50,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--progress-seconds must be positive, found {args.progress_seconds}")
     if args.gpus < 0:
         parser.error(f"--gpus must be at least 0, found {args.gpus}")
+    if args.pin_cpus and args.gpus < 2:
+        parser.error("--pin-cpus shares the cores out among the processes of --gpus N (N >= 2)")
     if args.gpus > 1:
         if args.device not in ("auto", "cuda"):
             parser.error(f"--gpus {args.gpus} fits on cuda:0..{args.gpus - 1}; --device {args.device} cannot go with it")
         path = fit_parallel(args.capture, args.output, args.preset, args.variant, args.gpus, "cuda", overwrite=args.overwrite,
-                            progress_s=args.progress_seconds, tensorboard=args.tensorboard, cores=args.threads)
+                            progress_s=args.progress_seconds, tensorboard=args.tensorboard, cores=args.threads,
+                            pin_cpus=args.pin_cpus)
     else:
         path = fit(args.capture, args.output, args.preset, args.variant, args.device, overwrite=args.overwrite,
                    threads=args.threads, progress_s=args.progress_seconds, tensorboard=args.tensorboard)
