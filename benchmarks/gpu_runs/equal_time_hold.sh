@@ -77,5 +77,8 @@ case $1 in
       collect; date +%T; nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader
       ls -la $OUT
       cat $RES/names.* | while read -r run _; do echo "== $run"; grep "^fit /tmp" $RES/out/$run.txt | tail -1
-        grep "^\[evaluate\] novel_\w* lod[0-9]*: PSNR [0-9]" $RES/out/$run.txt; done ;;
+        grep "^\[evaluate\] novel_\w* lod[0-9]*: PSNR [0-9]" $RES/out/$run.txt
+        # A fit that ended without its JSON: say so loudly, with its error, so the next call can restart it.
+        if [ ! -s $RES/$run.json ] && ! pgrep -f "json $RES/$run.json" > /dev/null; then
+          echo "!! $run ENDED WITHOUT RESULTS: $(grep -E '^[A-Za-z.]*(Error|Exception)' $RES/out/$run.txt | tail -1)"; fi; done ;;
 esac
