@@ -8,7 +8,9 @@
 #   a: FRACTION (default 0.1) of the 2000 + 500 frames (5,600 view scores at 4 LODs), the old code with one
 #      evaluate process per LOD, then this code with one per split and the breakdown of an evaluate second.
 #   p: the whole protocol (FRACTION 1: 56,000 view scores) with this code, after an ITERATIONS-long fit (default
-#      3000; the fit's last line gives its held-out PSNR, which must reach 30 dB), its disk bytes and memory.
+#      3000; the fit's last line gives its held-out PSNR, which must reach 30 dB), its disk bytes and memory; EXTRA:
+#      more eval_scale.py arguments (e.g. "--lpips-precision float16 --channels-last" once item 1 has shown them within
+#      issue 39's parity bounds).
 # Each runs in its own session (setsid) and waits up to 540 s; stage w waits again (call it until it prints "done").
 set -u
 W=/tmp/evrate F=${2:-0.1} I=${3:-3000} D=$OUT/eval_rate
@@ -38,8 +40,8 @@ case $1 in
        < /dev/null > /dev/null 2>&1 &
      sleep 5; wait_run 540 ;;
   p) rm -f $W/done
-     setsid bash -c "python3 benchmarks/eval_scale.py $COMMON --fraction 1 --iterations $I --tag full \
-       --breakdown-batches 8 --json $W/full.json > $W/full.txt 2>&1; touch $W/done" \
+     setsid bash -c "python3 benchmarks/eval_scale.py $COMMON --fraction $F --iterations $I --tag full \
+       --breakdown-batches 8 ${EXTRA:-} --json $W/full.json > $W/full.txt 2>&1; touch $W/done" \
        < /dev/null > /dev/null 2>&1 &
      sleep 5; wait_run 540 ;;
   w) wait_run 560 ;;
