@@ -33,7 +33,10 @@ if [ "$BASE" = paper ]; then
   [ -d /tmp/site/gsplat ] && [ -d /tmp/text ] || bash .gpu/device-setup.sh >/dev/null
   [ -d /tmp/snk/snakemake ] || python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/snk \
     .gpu/snakemake/*.whl
-  export PYTHONPATH=/tmp/site:/tmp/snk:$REPO TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
+  # Set-up's build environment, and gsplat's extension loaded once before the GPU jobs start side by side
+  # (benchmarks/gpu_runs/kit_env.sh: run33 lost two of four fits to a rebuild race).
+  . benchmarks/gpu_runs/kit_env.sh "$REPO"
+  export PYTHONPATH=/tmp/site:/tmp/snk:$REPO
 else
   export PYTHONPATH=$REPO PYTHONUNBUFFERED=1
 fi

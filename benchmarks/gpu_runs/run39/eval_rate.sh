@@ -19,7 +19,7 @@ W=/tmp/evrate F=${2:-0.1} I=${3:-3000} D=$OUT/eval_rate
 SRC=/tmp/run39_src
 if [ "$1" != w ]; then rm -rf $SRC && cp -r . $SRC; fi
 cd $SRC
-export PYTHONPATH=/tmp/site:$SRC TORCH_EXTENSIONS_DIR=/tmp/text PYTHONUNBUFFERED=1
+. benchmarks/gpu_runs/kit_env.sh $SRC  # set-up's build environment: no second build of gsplat's extension
 mkdir -p $D $W
 COMMON="--workdir $W --upscale 5 --workers 16 --codec png --encode-workers 14 --batch-size 16"
 wait_run() {  # SECONDS
