@@ -27,7 +27,7 @@ from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.config import AvatarConfig
 from pig.avatar.distributed import (GradientReducer, Parallel, ShardedSampler, SolveShards, shard_loss, shard_picks,
                                     solve_costs, solve_owners, split_pairs)
-from pig.avatar.parallel_fit import (RankHooks, fit_parallel, gpu_local_cpus, parse_cpu_list, rank_cpu_sets,
+from pig.avatar.parallel_fit import (RankHooks, core_of, fit_parallel, gpu_local_cpus, parse_cpu_list, rank_cpu_sets,
                                      rank_threads)
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.losses import lpips_term
@@ -519,6 +519,19 @@ def test_rank_cpu_sets_are_disjoint_balanced_and_local_first():
     assert rank_cpu_sets(2, [0, 1, 2, 3], [{3}, {3}]) == [[0, 3], [1, 2]]
     with pytest.raises(ValueError, match="a CPU a rank"):
         rank_cpu_sets(3, [0, 1])
+
+
+def test_a_physical_cores_hardware_threads_go_to_one_rank(tmp_path):
+    # 4 cores of 2 threads numbered as Linux often does: CPU n and n + 4 share a core.
+    for cpu in range(8):
+        (tmp_path / f"cpu{cpu}" / "topology").mkdir(parents=True)
+        (tmp_path / f"cpu{cpu}" / "topology" / "thread_siblings_list").write_text(f"{cpu % 4},{cpu % 4 + 4}\n")
+    cores = core_of(list(range(9)), tmp_path)  # cpu8: no topology, its own core
+    assert cores == {0: 0, 1: 1, 2: 2, 3: 3, 4: 0, 5: 1, 6: 2, 7: 3, 8: 8}
+    assert rank_cpu_sets(2, list(range(8)), cores=cores) == [[0, 1, 4, 5], [2, 3, 6, 7]]
+    node = set(range(8))  # one NUMA node, both GPUs on it: the cores still go whole
+    assert rank_cpu_sets(2, list(range(8)), [node, node], cores) == [[0, 1, 4, 5], [2, 3, 6, 7]]
+    assert rank_cpu_sets(2, list(range(8))) == [[0, 1, 2, 3], [4, 5, 6, 7]]  # without the topology: by number
 
 
 def test_gpu_local_cpus_reads_the_devices_numa_node(tmp_path, monkeypatch):

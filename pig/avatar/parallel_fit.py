@@ -75,13 +75,28 @@ def gpu_local_cpus(index: int, sysfs: Path = Path("/sys/bus/pci/devices")) -> se
         return None
 
 
-def rank_cpu_sets(processes: int, allowed: list[int], near: list[set[int] | None] | None = None) -> list[list[int]]:
+def core_of(cpus: list[int], sysfs: Path = Path("/sys/devices/system/cpu")) -> dict[int, int]:
+    """Each CPU's physical core, named by its first hardware thread (topology/thread_siblings_list); a CPU whose
+    topology the system does not tell is its own core."""
+    cores = {}
+    for cpu in cpus:
+        try:
+            cores[cpu] = min(parse_cpu_list((sysfs / f"cpu{cpu}" / "topology" / "thread_siblings_list").read_text()))
+        except (OSError, ValueError):
+            cores[cpu] = cpu
+    return cores
+
+
+def rank_cpu_sets(processes: int, allowed: list[int], near: list[set[int] | None] | None = None,
+                  cores: dict[int, int] | None = None) -> list[list[int]]:
     """Disjoint sets of the `allowed` CPUs, one a rank, their sizes differing by one at most; where `near` gives a
-    rank's device-local CPUs (its GPU's NUMA node), its set is drawn from those first. Each rank then launches its
+    rank's device-local CPUs (its GPU's NUMA node), its set is drawn from those first, and where `cores` names each
+    CPU's physical core (core_of), a core's hardware threads go to one rank together. Each rank then launches its
     kernels from cores no other rank's threads (OpenMP's, OpenCV's, the view loader's) run on."""
     if not 1 <= processes <= len(allowed):
         raise ValueError(f"rank_cpu_sets: {processes} ranks for {len(allowed)} CPUs; pinning needs a CPU a rank at least")
-    free = sorted(set(allowed))
+    cores = cores or {}
+    free = sorted(set(allowed), key=lambda cpu: (cores.get(cpu, cpu), cpu))
     base, extra = divmod(len(free), processes)
     sets = []
     for rank in range(processes):
@@ -132,7 +147,7 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
     if pin_cpus:
         allowed = sorted(os.sched_getaffinity(0))[:cores]
         near = [gpu_local_cpus(rank) for rank in range(processes)] if device_type == "cuda" else None
-        cpu_sets = rank_cpu_sets(processes, allowed, near)
+        cpu_sets = rank_cpu_sets(processes, allowed, near, core_of(allowed))
     output_dir, capture_dir = Path(output_dir), Path(capture_dir)
     with output_lock(output_dir, "fit"):
         # Refused here, before any process starts; rank 0 then writes these.
