@@ -48,15 +48,15 @@ from pathlib import Path
 
 import yaml
 
-from fit_gpu import parse_variant
+from fit_gpu import parse_variant, variant_preset
 from pig.config import load_preset
 
 
-def write_preset(base: str, overrides: dict, path: Path, **fit) -> Path:
+def write_preset(base: str, overrides: dict, path: Path, variant: str, **fit) -> Path:
+    """Preset `base` with a candidate's `overrides`, winning over `variant`'s own keys too (fit_gpu.variant_preset)."""
     preset = load_preset(base)
     preset.pop("_path")
-    for section, values in overrides.items():
-        preset.setdefault(section, {}).update(values)
+    preset = variant_preset(preset, variant, overrides)
     preset["fit"].update(fit)
     path.write_text(yaml.safe_dump(preset))
     return path
@@ -77,7 +77,7 @@ def quality(capture: Path, name: str, overrides: dict, seed: int, workdir: Path,
     root = workdir / f"{name}_seed{seed}"
     shutil.rmtree(root, ignore_errors=True)
     root.mkdir(parents=True)
-    preset = write_preset(base, overrides, root / "preset.yaml", seed=seed,
+    preset = write_preset(base, overrides, root / "preset.yaml", variant, seed=seed,
                           **({"cpu_threads": threads} if processes > 1 else {}))
 
     def stage(*args: str) -> None:
@@ -125,8 +125,8 @@ def step_cost(capture: Path, candidates: list[tuple[str, dict]], steps: int, thr
     times: dict[str, list[float]] = {name: [] for name, _ in candidates}
     for _ in range(repeats):
         for name, overrides in candidates:
-            preset = write_preset(base, overrides, workdir / f"{name}.yaml", iterations=steps, eval_every=10**6,
-                                  checkpoint_minutes=10**6)
+            preset = write_preset(base, overrides, workdir / f"{name}.yaml", method_variant(name, variants),
+                                  iterations=steps, eval_every=10**6, checkpoint_minutes=10**6)
             marks = {}
             out = workdir / f"{name}_steps"
             shutil.rmtree(out, ignore_errors=True)

@@ -160,11 +160,22 @@ class PhaseTimer:
             hook.remove()
 
 
-def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path, folder: str | None = None) -> dict:
-    """Fit variant `name` (a preset variant, else `pig`) with `overrides`; outputs under `folder` (default: `name`)."""
+def variant_preset(profile: dict, name: str, overrides: dict) -> dict:
+    """`profile` with `overrides` ({section: {key: value}}) over its sections and over variant `name`'s own entry, so
+    that they win where the variant sets the same key (no_precond sets precond.optimizer: an override of it must not
+    be undone by the variant)."""
     varied = yaml.safe_load(yaml.safe_dump(profile))
+    entry = (varied.get("variants") or {}).get(name)
     for section, values in overrides.items():
         varied.setdefault(section, {}).update(values)
+        if entry is not None and section in entry:
+            entry[section].update(values)
+    return varied
+
+
+def run_variant(args, name: str, overrides: dict, profile: dict, capture: Path, folder: str | None = None) -> dict:
+    """Fit variant `name` (a preset variant, else `pig`) with `overrides`; outputs under `folder` (default: `name`)."""
+    varied = variant_preset(profile, name, overrides)
     total = args.iterations + args.profile_phases + args.profile_ops
     # Same preset, run length cut; no held-out evaluation or checkpoint inside the timing.
     varied["fit"].update(iterations=total, eval_every=args.eval_every or 10**9, checkpoint_minutes=10**6)

@@ -47,3 +47,24 @@ def test_capture_only_makes_the_subject_without_a_gpu(tmp_path, monkeypatch):
     capture = Capture.load(tmp_path / "capture", cache_mb=0)
     assert len(capture.cameras) == 3
     assert main(["--workdir", str(tmp_path), "--preset", "test", "--frames", "2", "--reuse-capture"]) == 1  # a fit does
+
+
+def test_an_override_wins_over_the_variants_own_key():
+    """`no_precond:precond.optimizer=uniform_adam` fits no_precond with uniform Adam: the variant's own
+    `precond.optimizer: adam` does not undo it (issue 38's levers go on every variant)."""
+    from fit_gpu import variant_preset
+
+    from pig.avatar.variants import variant_overrides
+    from pig.config import load_preset, load_section
+    from pig.field.precondition import PrecondConfig
+
+    profile = load_preset("paper")
+    for spec, form, optimizer, eps in (("no_precond:precond.optimizer=uniform_adam,precond.adam_eps=1.0e-15", "none",
+                                        "uniform_adam", 1e-15),
+                                       ("pig:precond.form=filter,precond.optimizer=uniform_adam", "filter", "uniform_adam", 1e-8),
+                                       ("no_precond:precond.adam_eps=1.0e-15", "none", "adam", 1e-15)):
+        name, overrides = parse_variant(spec)
+        preset = variant_preset(profile, name, overrides)
+        cfg = load_section(preset, "precond", PrecondConfig, variant_overrides(preset, name).get("precond"))
+        assert (cfg.form, cfg.optimizer, cfg.adam_eps) == (form, optimizer, eps), spec
+    assert profile["variants"]["no_precond"]["precond"]["optimizer"] == "adam"  # the caller's preset untouched
