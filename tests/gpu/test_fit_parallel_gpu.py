@@ -16,9 +16,9 @@ from torch.multiprocessing import start_processes
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from preset_files import write_test_preset  # noqa: E402
-from test_fit_parallel import STEP_FIT, WORLD, _log, _one_step, _step_rank  # noqa: E402
+from test_fit_parallel import STEP_FIT, WORLD, _log, _one_step, _placement_hooks, _step_rank  # noqa: E402
 
-from pig.avatar.parallel_fit import fit_parallel  # noqa: E402
+from pig.avatar.parallel_fit import fit_parallel, gpu_local_cpus  # noqa: E402
 
 pytestmark = [
     pytest.mark.gpu,
@@ -58,3 +58,23 @@ def test_short_fit_on_two_gpus(small_capture, tmp_path):
     assert path.exists() and not (tmp_path / "out" / "checkpoint.pt").exists()
     rows = _log(tmp_path / "out")
     assert [int(r["iteration"]) for r in rows] == list(range(7)) and rows[-1]["heldout_psnr"] != ""
+
+
+def test_pinned_ranks_run_near_their_gpus(small_capture, tmp_path):
+    """--pin-cpus on GPUs: disjoint CPU sets, each inside its GPU's NUMA node where the system tells it (and the node
+    has enough CPUs for its ranks)."""
+    import ast
+    import functools
+    import os
+
+    preset = write_test_preset(tmp_path, iterations=2, eval_every=10**6, checkpoint_minutes=10**6)
+    fit_parallel(small_capture, tmp_path / "out", preset, "pig", WORLD, "cuda", progress_s=1e6, timeout_s=300,
+                 rank_hooks=functools.partial(_placement_hooks, str(tmp_path)), pin_cpus=True)
+    placed = [ast.literal_eval((tmp_path / f"placement{rank}").read_text()) for rank in range(WORLD)]
+    sets = [set(cpus) for cpus, _, _ in placed]
+    assert not sets[0] & sets[1] and all(sets)
+    for rank, cpus in enumerate(sets):
+        near = gpu_local_cpus(rank)
+        print(f"rank {rank}: {len(cpus)} CPUs, GPU-local {sorted(near)[:4] if near else 'unknown'}...")
+        if near and len(near & set(os.sched_getaffinity(0))) >= WORLD * len(cpus):
+            assert cpus <= near, (rank, sorted(cpus), sorted(near))
