@@ -10,7 +10,8 @@ final evaluation) is listed with `log` and `text` instead: its curve from the tr
 the evaluate lines it printed, and "-" for a split it did not reach. `--plot` draws error against training time,
 one panel per metric, both subjects. Last, how much each curve wobbles over its last 60 % of training seconds (a
 fit's final value is one draw from that wobble): the evaluations' mean, sd and mean |dip| (each inner evaluation
-against the mean of its two neighbours). A fit with a lever (extra overrides) carries a `label` in the manifest, which
+against the mean of its two neighbours), and issue 38's rule: `pig` against `no_precond` per seed and budget, and
+whether the difference is beyond the spread (the seed-0 5-minute replicates' max - min). A fit with a lever (extra overrides) carries a `label` in the manifest, which
 names it in place of its variant. A fit with a weight average (fit.average_decay) also logs, at each evaluation after
 the average started, the held-out PSNR of the iterate it averages: the last table pairs the two, within the fit. Its
 last iterate, evaluated too (fit_gpu.py --evaluate-iterate) and given an `iterate_replicate` in the manifest, is a
@@ -210,6 +211,40 @@ def table(fits: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond") -> str:
+    """Issue 38's rule, where both variants have fits: the mean final novel-view and novel-pose PSNR of `leader` and
+    `other` per seed and budget, their difference, and whether it is beyond the spread, the larger of the two
+    variants' max - min over the seed-0 5-minute replicates (the issue's definition), split by split."""
+    def finals(variant, seed, budget, split):
+        return [v for f in fits if (f["variant"], f["seed"], f["budget_s"]) == (variant, seed, budget)
+                for v in [metric(f, split, "psnr")] if not math.isnan(v)]
+
+    spreads = {}
+    for split in ("novel_view", "novel_pose"):
+        ranges = [max(v) - min(v) for v in (finals(leader, 0, 300, split), finals(other, 0, 300, split)) if len(v) > 1]
+        spreads[split] = max(ranges) if ranges else math.nan
+    lines = ["", f"Issue 38's rule: `{leader}` against `{other}`, beyond the spread (the larger of the two variants' "
+             f"max - min over the seed-0 5-minute replicates: novel view {spreads['novel_view']:.3f} dB, novel pose "
+             f"{spreads['novel_pose']:.3f} dB)", "",
+             f"| seed | budget | split | {leader} dB (fits) | {other} dB (fits) | difference dB | verdict |",
+             "|---|---|---|---|---|---|---|"]
+    for seed, budget in sorted({(f["seed"], f["budget_s"]) for f in fits}):
+        for split in ("novel_view", "novel_pose"):
+            mine, theirs = finals(leader, seed, budget, split), finals(other, seed, budget, split)
+            if not (mine and theirs):
+                continue
+            difference = float(np.mean(mine) - np.mean(theirs))
+            if math.isnan(spreads[split]):
+                verdict = "no spread yet"
+            elif abs(difference) > spreads[split]:
+                verdict = f"{leader if difference > 0 else other} beyond"
+            else:
+                verdict = "within the spread"
+            lines.append(f"| {seed} | {budget / 60:g} min | {split} | {np.mean(mine):.2f} ({len(mine)}) | "
+                         f"{np.mean(theirs):.2f} ({len(theirs)}) | {difference:+.3f} | {verdict} |")
+    return "\n".join(lines)
+
+
 def plot(fits: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -270,6 +305,7 @@ def main(argv=None) -> int:
               f"{fit['compile_s']:.0f} s of compilation left out", end="")
     print()
     print(averaged_table(args.manifest.parent, fits))
+    print(rule_table(fits))
     if args.plot is not None:
         plot(fits, args.plot)
     return 0

@@ -11,7 +11,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from equal_time import (SUMMARY_KEYS, averaged_pairs, averaged_table, fit_from_json, fit_from_log, load_fits,  # noqa: E402
-                        printed_metrics, table, wobble)
+                        printed_metrics, rule_table, table, wobble)
 
 RUNS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_runs"
 # run27's no_precond came back whole: its JSON is the reference for what the printed lines and log give.
@@ -130,3 +130,25 @@ def test_an_evaluated_last_iterate_is_a_replicate_of_the_plain_variant(tmp_path)
     nv = [plain_nv, iterate["final"]["novel_view"]["psnr"]]
     assert row.split(" | ")[3] == "2" and row.split(" | ")[5].startswith(f"{sum(nv) / 2:.2f} ± {(max(nv) - min(nv)) / 2:.2f}")
     assert len([line for line in averaged_table(tmp_path, fits).splitlines() if line.startswith("| 0 |")]) == 1
+
+
+def _final(variant: str, seed: int, budget_s: int, view: float, pose: float = math.nan) -> dict:
+    return {"variant": variant, "seed": seed, "budget_s": budget_s,
+            "final": {"novel_view": {"psnr": view}, "novel_pose": {"psnr": pose}}}
+
+
+def test_the_rule_compares_with_the_larger_seed0_five_minute_spread():
+    fits = [_final("pig", 0, 300, v, p) for v, p in ((30.0, 28.0), (31.0, 28.1), (30.5, 28.05))]  # NV range 1.0
+    fits += [_final("no_precond", 0, 300, v, p) for v, p in ((30.2, 27.0), (30.4, 27.3), (30.3, 27.2))]  # NP 0.3
+    fits += [_final("pig", 1, 900, 32.0, 27.0), _final("no_precond", 1, 900, 30.5, 26.9),  # +1.5 NV beyond 1.0
+             _final("pig", 0, 900, 31.0), _final("no_precond", 0, 900, 30.1),  # +0.9: within; no pose fits
+             _final("template_bound", 1, 900, 20.0)]  # not compared
+    rows = {tuple(c.strip() for c in line.strip("|").split("|")[:3]): line
+            for line in rule_table(fits).splitlines() if line.startswith("| ") and "min" in line}
+    assert "novel view 1.000 dB, novel pose 0.300 dB" in rule_table(fits)
+    assert rows[("1", "15 min", "novel_view")].endswith("| +1.500 | pig beyond |")
+    assert rows[("1", "15 min", "novel_pose")].endswith("| +0.100 | within the spread |")
+    assert rows[("0", "15 min", "novel_view")].endswith("| +0.900 | within the spread |")
+    assert ("0", "15 min", "novel_pose") not in rows  # no finite value on either side
+    assert rows[("0", "5 min", "novel_pose")].endswith("| +0.883 | pig beyond |")  # 28.05 - 27.167 > 0.3
+    assert "no spread yet" in rule_table(fits[6:])  # without the seed-0 5-minute replicates
