@@ -7,6 +7,7 @@ The section maps rule names, and `default` for the rules it does not name, to th
 """
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, fields
 from typing import Any
@@ -75,3 +76,9 @@ def check_rule_names(preset: dict[str, Any], rules: set[str]) -> None:
     if unknown:
         raise ConfigError(f"{where}: no rule named {unknown} takes its resources from here; "
                           f"expected `{DEFAULT}` or some of {sorted(rules)}")
+
+
+def host_cores() -> int:
+    """The cores this process may run on (its CPU affinity, where the platform tells it: a Slurm job's or a pinned
+    rank's, not the machine's)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1

@@ -20,6 +20,7 @@ from pig.avatar.distributed import GradientReducer, Parallel
 from pig.avatar.fit_progress import TENSORBOARD_DIR
 from pig.avatar.training import OUTPUT_FILES, fit_rank
 from pig.progress import LOG_INTERVAL_S
+from pig.resources import host_cores
 from pig._outputs import claim_files, output_lock
 
 FIRST_FAILURE = "first_failure"  # the store's key for the error of the first rank that failed
@@ -36,11 +37,6 @@ class RankHooks:
     on_iteration: Callable[[int], None] | None = None
     phase: Callable[[str], object] | None = None
     on_reducer: Callable[[GradientReducer], None] | None = None
-
-
-def host_cores() -> int:
-    """The cores this process may run on (its CPU affinity, where the platform tells it)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def rank_threads(processes: int, cores: int) -> int:
@@ -145,6 +141,8 @@ def fit_parallel(capture_dir: Path, output_dir: Path, preset_name: str, variant:
         raise ValueError(f"fit_parallel: cores must be at least 1, found {cores}")
     cpu_sets = None
     if pin_cpus:
+        if not hasattr(os, "sched_setaffinity"):
+            raise ValueError("fit_parallel: pinning the ranks to CPUs (--pin-cpus) needs Linux's CPU affinity")
         allowed = sorted(os.sched_getaffinity(0))[:cores]
         near = [gpu_local_cpus(rank) for rank in range(processes)] if device_type == "cuda" else None
         cpu_sets = rank_cpu_sets(processes, allowed, near, core_of(allowed))

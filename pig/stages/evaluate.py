@@ -18,7 +18,6 @@ then its last iterate) casts none. The geometry metrics are computed meanwhile o
 from __future__ import annotations
 
 import math
-import os
 import re
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -45,6 +44,7 @@ from pig.metrics.ssim import ssim, ssim_map
 from pig.metrics.weights import (INCEPTION_FILE, LPIPS_LINEAR_FILES, TORCHVISION_FILES, WeightsMissing, locate,
                                  lpips_package_weights)
 from pig.progress import progress_bar
+from pig.resources import host_cores
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 from pig._io import file_sha256, read_record, write_json, write_text
 from pig._outputs import claim_files
@@ -272,7 +272,7 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
     sizes = {name: (camera.width, camera.height) for name, camera in capture.cameras.items()}  # chunks checked against
     loader = BatchLoader(capture, {level: RenderReader(path, sizes) for level, path in level_dirs.items()}, batches,
                          cfg.encode_workers, pin=device.type == "cuda", labeller=labeller,
-                         label_workers=cfg.label_workers or os.cpu_count() or 1)
+                         label_workers=cfg.label_workers or host_cores())
     values: dict[int, list[dict[str, torch.Tensor]]] = {level: [] for level in level_dirs}
     fake_features = {level: FeatureStatistics() for level in level_dirs}
     real_features = FeatureStatistics()

@@ -35,6 +35,7 @@ from pig.data.raw import CaptureError, RawCapture
 from pig.data.rectify import MASK_THRESHOLD, Rectifier, output_size, scaled_intrinsics
 from pig.data.splits import SplitConfig, make_split, require_views
 from pig.names import safe_name
+from pig.resources import host_cores
 from pig.progress import progress_bar
 from pig._cli import add_common_arguments, add_preset_argument, run_cli, stage_parser
 from pig._io import atomic_path, write_json
@@ -230,7 +231,7 @@ def preprocess_capture(raw: RawCapture, output: str | Path, cfg: PreprocessConfi
         check_masks: dict[str, dict[int, np.ndarray]] = {c: {} for c in checked}
         threads = cv2.getNumThreads()
         cv2.setNumThreads(1)  # parallel over images instead; OpenCV's own pool would oversubscribe the cores
-        pool = ThreadPoolExecutor(cfg.workers or len(os.sched_getaffinity(0)))
+        pool = ThreadPoolExecutor(cfg.workers or host_cores())
         resumed = sum(map(len, done.values()))
         bar = progress_bar(total=len(pairs), initial=resumed, desc="preprocess", unit="img", disable=not progress)
         images_start = time.perf_counter()
