@@ -96,10 +96,6 @@ def read_ranks(text: str) -> Ranks:
     return Ranks([by_process[pid] for pid in sorted(by_process)], left_out)
 
 
-def is_main(sample: Sample) -> bool:
-    return sample.thread == "MainThread"
-
-
 def inclusive(samples: list[Sample], keep) -> Counter:
     """Samples per frame that `keep` accepts, each frame once per sample."""
     counts: Counter = Counter()
@@ -132,7 +128,7 @@ def print_tables(ranks: Ranks, top: int) -> None:
             threads[sample.thread] += sample.count
         for thread, n in threads.most_common():
             print(f"| {rank} | {samples[0].process} | {thread} | {n} | {100 * n / total:.1f} % |")
-    main = [s for samples in ranks.samples for s in samples if is_main(s)]
+    main = [s for samples in ranks.samples for s in samples if s.thread == "MainThread"]
     total = sum(s.count for s in main) or 1
     called: Counter = Counter()
     for sample in main:

@@ -2,8 +2,9 @@
 
 `capture` builds the scene and writes the capture (generate_capture, build_scene); `config` holds the preset's
 `synthetic` section; `motion`, `garment`, `rig`, `texture` and `render` make the body motion, the skirt, the cameras,
-the albedo and the images; `workers` runs the rendering in processes that import no torch. The config is imported here directly and the generator on first use, so that the workflow
-reads the config without importing torch when it builds its DAG.
+the albedo and the images; `workers` runs the rendering in processes that import no torch. The config is imported
+here directly and the generator on first use, so that the workflow reads the config without importing torch when it
+builds its DAG.
 """
 from __future__ import annotations
 
