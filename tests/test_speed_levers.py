@@ -25,7 +25,7 @@ from pig.field.knn_graph import knn_laplacian
 from pig.field.knn_solve import CGNotConverged, CGSystem
 from pig.field.optim import Adam
 from pig.field.precondition import PrecondConfig
-from pig.metrics.ssim import ssim, ssim_map
+from pig.metrics.ssim import TAPS, gaussian_window, ssim, ssim_map
 from pig.render.api import RenderError, render_gaussians, render_timesteps
 from avatar_fixture import small_avatar
 
@@ -165,6 +165,15 @@ def test_ssim_shift_blur_equals_conv_in_float64(size):
     torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
     torch.testing.assert_close(ssim(x, y, reduction="none", blur="shift"), ssim(x, y, reduction="none", blur="conv"),
                                rtol=0, atol=1e-12)
+
+
+def test_shift_blur_window_is_scipys_gaussian():
+    """The shifted sums' Python taps: scipy.ndimage.gaussian_filter1d's weights (sigma 1.5, radius 5), to float64
+    rounding, and in float32 the very values the convolutions' window tensor holds."""
+    offsets = np.arange(-5, 6, dtype=np.float64)
+    weights = np.exp(-0.5 * (offsets / 1.5) ** 2)
+    np.testing.assert_allclose(TAPS, weights / weights.sum(), rtol=1e-15, atol=0)
+    assert torch.equal(torch.tensor(TAPS, dtype=torch.float32), gaussian_window(torch.float32, "cpu"))
 
 
 def test_compiled_shift_ssim_matches_conv_in_float32():

@@ -1,17 +1,26 @@
 #!/usr/bin/env bash
-# One step of benchmarks/fit_multi_gpu.py on one GPU, from an older tree and from this one side by side on GPUs 0 and
-# 1 of one machine: ms/it and peak memory of the same command, so that a change between two holds is told from the
-# machine's (run33: peak 33.2 against 20.1 GiB, 32.8 against 15.4 in the equal-time fits). Run through queue.sh
-# after any hold script has made /tmp/s/capture, with the older tree carried as an ignored folder:
+# One step of benchmarks/fit_multi_gpu.py on one GPU, from several trees side by side (tree i on GPU i modulo the
+# machine's GPUs): ms/it and peak memory of the same command, so that a change between two holds is told from the
+# machine's (run33: peak 33.2 against 20.1 GiB, 32.8 against 15.4 in the equal-time fits; run34: 26bda42 20.12 GiB,
+# 2e5d54c 33.15 GiB on one machine). Each tree compiles into its own inductor cache (a cache an earlier run filled
+# would hand one side kernels the other compiles). Run through queue.sh, with the older trees carried as ignored
+# folders; the capture is the equal-time subject of seed 1 (made here unless a hold script already made /tmp/s):
 #   here:   mkdir -p .ab/OLD && git archive OLD -- pig config benchmarks ':!benchmarks/gpu_runs' pyproject.toml | tar -x -C .ab/OLD
-#   device: WAIT=330 bash benchmarks/gpu_runs/queue.sh a "bash benchmarks/gpu_runs/ab_tree.sh .ab/OLD"   (carry .gpu, .ab)
-# Each side's output goes to $Q/ab_old.txt and $Q/ab_new.txt (they come back with the queue's tar).
+#   device: WAIT=400 bash benchmarks/gpu_runs/queue.sh a "bash benchmarks/gpu_runs/ab_tree.sh .ab/OLD ."   (carry .gpu, .ab)
+# Each tree's output goes to $Q/ab_NAME.txt (NAME: the folder's name, `this` for .), which come back with the queue's tar.
 set -u
-old=$(cd "$1" && pwd) new=$PWD
-run() {  # TREE GPU NAME
-  mkdir -p /tmp/ab_$3/data && rm -rf /tmp/ab_$3/data/capture && cp -r /tmp/s/capture /tmp/ab_$3/data/capture
-  (cd "$1" && PYTHONPATH=/tmp/site:$1 CUDA_VISIBLE_DEVICES=$2 timeout 300 python3 benchmarks/fit_multi_gpu.py \
-    --workdir /tmp/ab_$3 --gpus 1 --iterations 60 --warmup 40 --profile-phases 5 > "$Q/ab_$3.txt" 2>&1)
-}
-run "$old" 0 old & run "$new" 1 new; wait
-grep -h "ms/it, peak" "$Q"/ab_old.txt "$Q"/ab_new.txt
+[ -d /tmp/s/capture ] || python3 benchmarks/fit_gpu.py --workdir /tmp/s --seed 1 --frames 10 --capture-only > "$Q/ab_capture.txt" 2>&1 || exit 1
+gpus=$(nvidia-smi -L | wc -l) index=0
+for tree in "$@"; do
+  path=$(cd "$tree" && pwd) name=$(basename "$path"); [ "$tree" = . ] && name=this
+  mkdir -p /tmp/ab_$name/data && rm -rf /tmp/ab_$name/data/capture && cp -r /tmp/s/capture /tmp/ab_$name/data/capture
+  (cd "$path" && PYTHONPATH=/tmp/site:$path CUDA_VISIBLE_DEVICES=$((index % gpus)) TORCHINDUCTOR_CACHE_DIR=/tmp/ic_$name \
+    timeout 400 python3 benchmarks/fit_multi_gpu.py --workdir /tmp/ab_$name --gpus 1 --iterations 60 --warmup 40 \
+    --profile-phases 5 > "$Q/ab_$name.txt" 2>&1) &
+  index=$((index + 1))
+done
+wait
+for tree in "$@"; do
+  name=$(basename "$(cd "$tree" && pwd)"); [ "$tree" = . ] && name=this
+  echo "$name: $(grep -h "ms/it, peak" "$Q/ab_$name.txt")"
+done

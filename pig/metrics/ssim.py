@@ -6,12 +6,26 @@ after cropping the 5-pixel border the window reaches past), computed here with v
 """
 from __future__ import annotations
 
+import math
+from typing import Sequence
+
 import torch
 import torch.nn.functional as F
 
 SIGMA = 1.5
 RADIUS = 5  # scikit-image / scipy: int(truncate * sigma + 0.5) with truncate = 3.5
 K1, K2 = 0.01, 0.03
+
+
+def _window_taps() -> tuple[float, ...]:
+    weights = [math.exp(-0.5 * (offset / SIGMA) ** 2) for offset in range(-RADIUS, RADIUS + 1)]
+    total = math.fsum(weights)
+    return tuple(weight / total for weight in weights)
+
+
+# The window as Python numbers, for the shifted sums: under torch.compile they are constants of its kernels, so the
+# compiled loss makes, copies and saves for its backward no window tensor (eleven scalars when made on the host).
+TAPS = _window_taps()
 
 
 def gaussian_window(dtype: torch.dtype, device: torch.device | str | None = None) -> torch.Tensor:
@@ -31,11 +45,11 @@ def _blur_valid(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     return F.conv2d(F.conv2d(images, rows, groups=channels), cols, groups=channels)
 
 
-def _blur_shifted(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
+def _blur_shifted(images: torch.Tensor, taps: Sequence[float] | torch.Tensor) -> torch.Tensor:
     """`_blur_valid` as weighted sums of shifted slices: slow eagerly, but torch.compile fuses each pass into one
     memory-bound kernel (3.3 against 11.9 ms for the grouped convolutions, SSIM of 4 x 1330 x 1150 forward and
     backward on an H100; benchmarks/NOTES.md, "Fit")."""
-    size = taps.numel()
+    size = len(taps)
     height, width = images.shape[-2:]
     rows = sum(taps[i] * images[..., i:height - size + 1 + i, :] for i in range(size))
     return sum(taps[i] * rows[..., i:width - size + 1 + i] for i in range(size))
@@ -57,7 +71,7 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0, blur: st
     # convolutions to cuDNN's NHWC engine with layout transforms, measured ~5 ms per call at 4 x 1330 x 1150
     # on an H200 (benchmarks/NOTES.md, "Fit stage on the GPU: where the time goes").
     x, y = x.contiguous(), y.contiguous()
-    taps = gaussian_window(x.dtype, x.device)
+    taps = TAPS if blur == "shift" else gaussian_window(x.dtype, x.device)
     # One batched filter pass over the five moments instead of five passes.
     stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)
     mu_x, mu_y, xx, yy, xy = BLURS[blur](stacked, taps).chunk(5, dim=1)
