@@ -68,3 +68,11 @@ def test_an_override_wins_over_the_variants_own_key():
         cfg = load_section(preset, "precond", PrecondConfig, variant_overrides(preset, name).get("precond"))
         assert (cfg.form, cfg.optimizer, cfg.adam_eps) == (form, optimizer, eps), spec
     assert profile["variants"]["no_precond"]["precond"]["optimizer"] == "adam"  # the caller's preset untouched
+
+
+def test_a_key_given_again_later_wins():
+    """equal_time_hold.sh writes `NAME:$RATES,LEVER`: a lever's fit.lr_decoders after the rates' replaces it (hold
+    E1's paper rates), and the rates' other keys stay."""
+    rates = "fit.lr_decoders=3.0e-3,precond.grid_lr=3.0e-2,fit.weight_lpips=0"
+    name, overrides = parse_variant(f"pig:{rates},fit.lr_decoders=1.0e-3,precond.grid_lr=1.0e-2")
+    assert overrides == {"fit": {"lr_decoders": 1e-3, "weight_lpips": 0}, "precond": {"grid_lr": 1e-2}}
