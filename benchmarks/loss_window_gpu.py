@@ -10,7 +10,10 @@ one machine (benchmarks/NOTES.md, "the peak memory of a fit step"); the window i
 a compiled region of the step. Each form runs in its own process (its own compilation), and prints the peak memory
 above the inputs and the median ms of forward + backward:
 
-    python benchmarks/loss_window_gpu.py [--views 20] [--height 1150] [--width 1330] [--iterations 20]
+    python benchmarks/loss_window_gpu.py [--views 20] [--height 1150] [--width 1330] [--iterations 20] [--code-dir DIR]
+
+`--code-dir`: each form's compiled kernels as inductor wrote them (TORCH_LOGS=output_code) in DIR/FORM.txt, to read
+where a form's memory goes.
 
 On a CPU (no peak memory) it checks only that the three forms give the same loss and gradient.
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -89,6 +93,7 @@ def main(argv=None) -> int:
     parser.add_argument("--width", type=int, default=1330)
     parser.add_argument("--iterations", type=int, default=20)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--code-dir", help="write each form's generated code (TORCH_LOGS=output_code) to DIR/FORM.txt")
     parser.add_argument("--form", choices=FORMS, help=argparse.SUPPRESS)  # one form, in this process
     args = parser.parse_args(argv)
     if args.form:
@@ -98,7 +103,13 @@ def main(argv=None) -> int:
     for form in FORMS:
         command = [sys.executable, __file__, "--form", form, "--views", str(args.views), "--height", str(args.height),
                    "--width", str(args.width), "--iterations", str(args.iterations), "--device", args.device]
-        out = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+        env = dict(os.environ, **({"TORCH_LOGS": "output_code"} if args.code_dir else {}))
+        done = subprocess.run(command, capture_output=True, text=True, check=True, env=env)
+        if args.code_dir:
+            os.makedirs(args.code_dir, exist_ok=True)
+            with open(os.path.join(args.code_dir, f"{form}.txt"), "w") as file:
+                file.write(done.stderr)
+        out = done.stdout
         records.append(json.loads(out.strip().splitlines()[-1]))
     name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     print(f"device: {name}; compiled L1 + SSIM (shift blur), {args.views} x {args.height} x {args.width}, "
