@@ -59,9 +59,19 @@ def snakemake_exit(workdir: Path, *args: str) -> tuple[int, str]:
     return child.exitcode, log.read_text()
 
 
-def snakemake_run(workdir: Path, *args: str) -> str:
-    """Output of `snakemake ARGS` on the workflow in `workdir`; fails the test when Snakemake fails."""
-    code, output = snakemake_exit(workdir, *args)
+def snakemake_run(workdir: Path, *args: str, fresh: bool = False) -> str:
+    """Output of `snakemake ARGS` on the workflow in `workdir`; fails the test when Snakemake fails. `fresh`: in a new
+    interpreter instead of a fork, for a caller that has just fitted in this process: a fork taken then hung or
+    crashed in the child (the report fixture's: SIGSEGV before a line, then a hang after the first, two CI runs of
+    2026-11-27), as forks of a process with running threads may."""
+    if not fresh:
+        code, output = snakemake_exit(workdir, *args)
+    else:
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+        command = [sys.executable, "-m", "snakemake", *args, "--snakefile", str(REPO / "Snakefile"), "--directory",
+                   str(workdir)]
+        done = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, timeout=300)
+        code, output = done.returncode, done.stdout
     assert code == 0, f"snakemake {' '.join(args)} exited {code}:\n{output[-5000:]}"
     return output
 
