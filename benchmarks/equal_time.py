@@ -214,7 +214,9 @@ def table(fits: list[dict]) -> str:
 def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond") -> str:
     """Issue 38's rule, where both variants have fits: the mean final novel-view and novel-pose PSNR of `leader` and
     `other` per seed and budget, their difference, and whether it is beyond the spread, the larger of the two
-    variants' max - min over the seed-0 5-minute replicates (the issue's definition), split by split."""
+    variants' max - min over the seed-0 5-minute replicates (the issue's definition), split by split. A lever is a
+    pair of labels `leader LEVER` and `other LEVER` (e.g. "pig average 0.99", "no_precond average 0.99"): its rows
+    follow the plain variants', against the same spread."""
     def finals(variant, seed, budget, split):
         return [v for f in fits if (f["variant"], f["seed"], f["budget_s"]) == (variant, seed, budget)
                 for v in [metric(f, split, "psnr")] if not math.isnan(v)]
@@ -223,25 +225,29 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
     for split in ("novel_view", "novel_pose"):
         ranges = [max(v) - min(v) for v in (finals(leader, 0, 300, split), finals(other, 0, 300, split)) if len(v) > 1]
         spreads[split] = max(ranges) if ranges else math.nan
+    names = {f["variant"] for f in fits}
+    levers = [""] + sorted(name[len(leader):] for name in names
+                           if name.startswith(leader + " ") and other + name[len(leader):] in names)
     lines = ["", f"Issue 38's rule: `{leader}` against `{other}`, beyond the spread (the larger of the two variants' "
              f"max - min over the seed-0 5-minute replicates: novel view {spreads['novel_view']:.3f} dB, novel pose "
              f"{spreads['novel_pose']:.3f} dB)", "",
-             f"| seed | budget | split | {leader} dB (fits) | {other} dB (fits) | difference dB | verdict |",
-             "|---|---|---|---|---|---|---|"]
-    for seed, budget in sorted({(f["seed"], f["budget_s"]) for f in fits}):
-        for split in ("novel_view", "novel_pose"):
-            mine, theirs = finals(leader, seed, budget, split), finals(other, seed, budget, split)
-            if not (mine and theirs):
-                continue
-            difference = float(np.mean(mine) - np.mean(theirs))
-            if math.isnan(spreads[split]):
-                verdict = "no spread yet"
-            elif abs(difference) > spreads[split]:
-                verdict = f"{leader if difference > 0 else other} beyond"
-            else:
-                verdict = "within the spread"
-            lines.append(f"| {seed} | {budget / 60:g} min | {split} | {np.mean(mine):.2f} ({len(mine)}) | "
-                         f"{np.mean(theirs):.2f} ({len(theirs)}) | {difference:+.3f} | {verdict} |")
+             f"| lever | seed | budget | split | {leader} dB (fits) | {other} dB (fits) | difference dB | verdict |",
+             "|---|---|---|---|---|---|---|---|"]
+    for lever in levers:
+        for seed, budget in sorted({(f["seed"], f["budget_s"]) for f in fits}):
+            for split in ("novel_view", "novel_pose"):
+                mine, theirs = finals(leader + lever, seed, budget, split), finals(other + lever, seed, budget, split)
+                if not (mine and theirs):
+                    continue
+                difference = float(np.mean(mine) - np.mean(theirs))
+                if math.isnan(spreads[split]):
+                    verdict = "no spread yet"
+                elif abs(difference) > spreads[split]:
+                    verdict = f"{leader if difference > 0 else other} beyond"
+                else:
+                    verdict = "within the spread"
+                lines.append(f"| {lever.strip() or '-'} | {seed} | {budget / 60:g} min | {split} | {np.mean(mine):.2f} "
+                             f"({len(mine)}) | {np.mean(theirs):.2f} ({len(theirs)}) | {difference:+.3f} | {verdict} |")
     return "\n".join(lines)
 
 

@@ -143,8 +143,8 @@ def test_the_rule_compares_with_the_larger_seed0_five_minute_spread():
     fits += [_final("pig", 1, 900, 32.0, 27.0), _final("no_precond", 1, 900, 30.5, 26.9),  # +1.5 NV beyond 1.0
              _final("pig", 0, 900, 31.0), _final("no_precond", 0, 900, 30.1),  # +0.9: within; no pose fits
              _final("template_bound", 1, 900, 20.0)]  # not compared
-    rows = {tuple(c.strip() for c in line.strip("|").split("|")[:3]): line
-            for line in rule_table(fits).splitlines() if line.startswith("| ") and "min" in line}
+    rows = {tuple(c.strip() for c in line.strip("|").split("|")[1:4]): line
+            for line in rule_table(fits).splitlines() if line.startswith("| - |")}
     assert "novel view 1.000 dB, novel pose 0.300 dB" in rule_table(fits)
     assert rows[("1", "15 min", "novel_view")].endswith("| +1.500 | pig beyond |")
     assert rows[("1", "15 min", "novel_pose")].endswith("| +0.100 | within the spread |")
@@ -152,3 +152,14 @@ def test_the_rule_compares_with_the_larger_seed0_five_minute_spread():
     assert ("0", "15 min", "novel_pose") not in rows  # no finite value on either side
     assert rows[("0", "5 min", "novel_pose")].endswith("| +0.883 | pig beyond |")  # 28.05 - 27.167 > 0.3
     assert "no spread yet" in rule_table(fits[6:])  # without the seed-0 5-minute replicates
+
+
+def test_a_lever_on_both_variants_gets_its_own_rows_against_the_plain_spread():
+    fits = [_final("pig", 0, 300, v) for v in (30.0, 31.0, 30.5)] + [_final("no_precond", 0, 300, 30.3)]  # NV 1.0
+    fits += [_final("pig paper rates", 0, 900, 32.5), _final("no_precond paper rates", 0, 900, 31.0),  # +1.5
+             _final("pig eps 1e-15", 0, 900, 31.0), _final("no_precond eps 1e-15", 0, 900, 30.8),  # +0.2
+             _final("pig cg_tol 1e-3", 0, 900, 33.0)]  # on pig alone: no pair, no row
+    lines = [line for line in rule_table(fits).splitlines() if line.startswith("| ") and "min" in line]
+    assert [line.split(" | ")[0] for line in lines] == ["| -", "| eps 1e-15", "| paper rates"]
+    assert lines[2].startswith("| paper rates | 0 | 15 min | novel_view | 32.50 (1) | 31.00 (1) | +1.500 | pig beyond |")
+    assert lines[1].endswith("| +0.200 | within the spread |")
