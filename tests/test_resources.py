@@ -1,13 +1,9 @@
 """Job resources per rule from the compute preset's `resources:` section (pig.resources, workflow/rules/common.smk)."""
 from __future__ import annotations
 
-import multiprocessing
-import os
-import sys
 from pathlib import Path
 
 import pytest
-import snakemake.cli
 import yaml
 
 import pig.data.formats  # noqa: F401  (imported by the workflow at DAG time; loaded once here for the forks)
@@ -86,30 +82,18 @@ def test_shipped_presets(name):
     assert all(r.gpu <= 1 for r in resources.values())
 
 
-def _snakemake_child(argv: list[str], log: Path) -> None:
-    stream = open(log, "w", buffering=1)
-    os.dup2(stream.fileno(), 1)
-    os.dup2(stream.fileno(), 2)
-    sys.stdout = sys.stderr = stream
-    snakemake.cli.main(argv)
-
-
 def dry_run(tmp_path: Path, resources: dict) -> tuple[int, str]:
-    """(exit code, output) of a dry run of the default target with the test preset plus `resources`, in a forked
-    child of this process, which has already imported what the workflow imports at DAG time."""
+    """(exit code, output) of a dry run of the default target with the test preset plus `resources` (Snakemake as
+    test_workflow runs it)."""
+    from test_workflow import snakemake_exit
+
     work = tmp_path / "work"
     work.mkdir()
     (work / "config").symlink_to(REPO / "config")
     preset = yaml.safe_load((REPO / "config" / "presets" / "test.yaml").read_text())
     preset["resources"] = resources
     (tmp_path / "preset.yaml").write_text(yaml.safe_dump(preset))
-    argv = ["--dry-run", "--cores", "4", "--snakefile", str(REPO / "Snakefile"), "--directory", str(work),
-            "--config", f"preset={tmp_path / 'preset.yaml'}"]
-    log = tmp_path / "snakemake.out"
-    child = multiprocessing.get_context("fork").Process(target=_snakemake_child, args=(argv, log))
-    child.start()
-    child.join(timeout=120)
-    return child.exitcode, log.read_text()
+    return snakemake_exit(work, "--dry-run", "--cores", "4", "--config", f"preset={tmp_path / 'preset.yaml'}")
 
 
 def job_settings(output: str, rule: str) -> dict[str, str]:

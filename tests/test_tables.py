@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 import re
 import shutil
 from pathlib import Path
@@ -262,16 +261,12 @@ def test_table_targets_schedule_just_the_variants_of_their_table(tmp_path, snake
 
 
 def _failing_snakemake(workdir: Path, *args: str) -> str:
-    """Output of a `snakemake ARGS` that must fail (run as test_workflow runs it: a forked child)."""
-    from test_workflow import _snakemake_child
+    """Output of a `snakemake ARGS` that must fail (run as test_workflow runs it)."""
+    from test_workflow import snakemake_exit
 
-    log = workdir.parent / "snakemake.out"
-    argv = [*args, "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir)]
-    child = multiprocessing.get_context("fork").Process(target=_snakemake_child, args=(argv, log))
-    child.start()
-    child.join(timeout=120)
-    assert child.exitcode not in (0, None), log.read_text()[-3000:]
-    return log.read_text()
+    code, output = snakemake_exit(workdir, *args)
+    assert code not in (0, None), output[-3000:]
+    return output
 
 
 @pytest.mark.parametrize("target, message", [
