@@ -25,7 +25,8 @@ def lpips_workflow(recorded, tmp_path, monkeypatch):
 
 
 def fit_once(work):
-    return snakemake_exit(work, TARGET, "--forcerun", "fit_avatar", "--until", "fit_avatar", "--cores", "1")
+    """A forked Snakemake, which sees this test's patches of pig.metrics.weight_files (the DAG-time check)."""
+    return snakemake_exit(work, TARGET, "--forcerun", "fit_avatar", "--until", "fit_avatar", "--cores", "1", fork=True)
 
 
 def test_missing_or_corrupt_loss_weights_refuse_the_run(lpips_workflow, tmp_path, monkeypatch):

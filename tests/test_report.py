@@ -95,9 +95,8 @@ def report(tmp_path_factory, request) -> Path:
         for lod in range(2):
             _summary(work / "results", "subject00", "pig", split, lod)
     settings = ["--config", "preset=config/test preset.yaml", "variants=[pig]"]
-    snakemake_run(work, *TARGETS, "--cores", "2", "--allowed-rules", "make_tables", "make_table", "animate", *settings,
-                  fresh=True)
-    snakemake_run(work, *TARGETS, "--report", "report.html", *settings, fresh=True)
+    snakemake_run(work, *TARGETS, "--cores", "2", "--allowed-rules", "make_tables", "make_table", "animate", *settings)
+    snakemake_run(work, *TARGETS, "--report", "report.html", *settings)
     return work / "report.html"
 
 

@@ -3,8 +3,8 @@
 Most tests work on a fake THuman4 subject whose outputs all exist and are recorded as up to date
 (`--touch`), in a folder whose path, raw data, preset, dataset YAML and subject name hold spaces, and
 assert which jobs a dry run schedules after one change: a preset value, the dataset split, a raw image
-or mask, `avatar.levels`. Snakemake runs in a forked child of the test process, which has already
-imported what the workflow imports at DAG time: a dry run takes ~2 s instead of ~3 s. Building the DAG imports
+or mask, `avatar.levels`. Snakemake runs in a fresh interpreter (snakemake_exit: a fork of the test process,
+~1 s faster a dry run, hung or crashed in the child where the process had run torch). Building the DAG imports
 no torch (a test checks it in a fresh interpreter).
 """
 from __future__ import annotations
@@ -46,32 +46,35 @@ def _snakemake_child(argv: list[str], log: Path) -> None:
     snakemake.cli.main(argv)
 
 
-def snakemake_exit(workdir: Path, *args: str) -> tuple[int, str]:
-    """(exit code, output) of `snakemake ARGS` on the workflow in `workdir`."""
-    log = workdir.parent / "snakemake.out"
+def snakemake_exit(workdir: Path, *args: str, fork: bool = False) -> tuple[int, str]:
+    """(exit code, output) of `snakemake ARGS` on the workflow in `workdir`, in a fresh interpreter. `fork`: in a
+    forked child of this process instead, which sees this process's monkeypatches (for a test that patches what the
+    workflow checks while it builds its DAG). Forks are otherwise avoided: a fork of a test process that has run
+    torch (its thread pools, tqdm's monitor thread) hung or crashed in the child in CI (2026-11-27: SIGSEGV before a
+    line, a hang after the first, a hang inside an import), as a fork of a process with running threads may."""
     argv = [*args, "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir)]
-    child = multiprocessing.get_context("fork").Process(target=_snakemake_child, args=(argv, log))
-    child.start()
-    child.join(timeout=300)
-    if child.is_alive():
-        child.kill()
-        child.join()
-    return child.exitcode, log.read_text()
+    if fork:
+        log = workdir.parent / "snakemake.out"
+        child = multiprocessing.get_context("fork").Process(target=_snakemake_child, args=(argv, log))
+        child.start()
+        child.join(timeout=300)
+        if child.is_alive():
+            child.kill()
+            child.join()
+        return child.exitcode, log.read_text()
+    # The rules' `python -m pig STAGE` commands must import this checkout's package.
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    try:
+        done = subprocess.run([sys.executable, "-m", "snakemake", *argv], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True, env=env, timeout=300)
+    except subprocess.TimeoutExpired as err:  # its output arrives as bytes, whatever `text` says
+        return -9, err.output.decode(errors="replace") if isinstance(err.output, bytes) else (err.output or "")
+    return done.returncode, done.stdout
 
 
-def snakemake_run(workdir: Path, *args: str, fresh: bool = False) -> str:
-    """Output of `snakemake ARGS` on the workflow in `workdir`; fails the test when Snakemake fails. `fresh`: in a new
-    interpreter instead of a fork, for a caller that has just fitted in this process: a fork taken then hung or
-    crashed in the child (the report fixture's: SIGSEGV before a line, then a hang after the first, two CI runs of
-    2026-11-27), as forks of a process with running threads may."""
-    if not fresh:
-        code, output = snakemake_exit(workdir, *args)
-    else:
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
-        command = [sys.executable, "-m", "snakemake", *args, "--snakefile", str(REPO / "Snakefile"), "--directory",
-                   str(workdir)]
-        done = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, timeout=300)
-        code, output = done.returncode, done.stdout
+def snakemake_run(workdir: Path, *args: str, fork: bool = False) -> str:
+    """Output of `snakemake ARGS` on the workflow in `workdir` (snakemake_exit); fails the test when Snakemake fails."""
+    code, output = snakemake_exit(workdir, *args, fork=fork)
     assert code == 0, f"snakemake {' '.join(args)} exited {code}:\n{output[-5000:]}"
     return output
 
