@@ -11,8 +11,8 @@ the evaluate lines it printed, and "-" for a split it did not reach. `--plot` dr
 one panel per metric, both subjects. Last, how much each curve wobbles over its last 60 % of training seconds (a
 fit's final value is one draw from that wobble): the evaluations' mean, sd and mean |dip| (each inner evaluation
 against the mean of its two neighbours), and issue 38's rule: `pig` against `no_precond` per seed and budget, and
-whether the difference is beyond the spread (the seed-0 5-minute replicates' max - min). A fit with a lever (extra overrides) carries a `label` in the manifest, which
-names it in place of its variant. A fit with a weight average (fit.average_decay) also logs, at each evaluation after
+whether the difference is beyond the spread (the seed-0 5-minute replicates' max - min). A fit with a lever (extra
+overrides) carries a `label` in the manifest, which names it in place of its variant. A fit with a weight average (fit.average_decay) also logs, at each evaluation after
 the average started, the held-out PSNR of the iterate it averages: the last table pairs the two, within the fit. Its
 last iterate, evaluated too (fit_gpu.py --evaluate-iterate) and given an `iterate_replicate` in the manifest, is a
 fit of the plain variant as well (the average does not feed back into the training; only its update's time differs):

@@ -13,13 +13,13 @@ frame, then "function (file:line)" frames), and its sample count. A rank is a pr
 spawn (torch's start_processes), numbered in the order of its process id (the order the ranks were started).
 Samples outside the fit (`_fit` of pig/avatar/training.py: imports, start-up), and those that compile
 (torch.compile's Dynamo and Inductor frames) or evaluate (the held-out evaluations) are left out: what remains of a
-rank's main thread is its training steps and the fit's own set-up (a table splits it by what `_fit` called). py-spy counts a thread while it runs Python or
-code called from it, so a sample in a frame that calls into torch's C++ (a kernel launch, the autograd engine)
-counts there.
+rank's main thread is its training steps and the fit's own set-up (a table splits it by what `_fit` called). py-spy
+counts a thread while it runs Python or code called from it, so a sample in a frame that calls into torch's C++ (a
+kernel launch, the autograd engine) counts there.
 
 Tables: per rank and thread, the share of the samples; for the ranks' main threads together, what `_fit` called,
-and the steps' frames by inclusive share (each frame counted once per sample however often it recurs) of this project's functions
-(pig/...), and by self share (the innermost frame) of every function.
+and the steps' frames by inclusive share (each frame counted once per sample however often it recurs) of this
+project's functions (pig/...), and by self share (the innermost frame) of every function.
 """
 from __future__ import annotations
 
@@ -134,21 +134,19 @@ def print_tables(ranks: Ranks, top: int) -> None:
     for sample in main:
         below = sample.frames[sample.frames.index(FIT) + 1:]
         called[below[0] if below else "_fit itself"] += sample.count
-    print(f"\nThe ranks' main threads together ({total} samples): what `_fit` called, by share")
+    print_frames(f"The ranks' main threads together ({total} samples): what `_fit` called, by share", called, total, top)
+    print_frames("The ranks' main threads together: this project's frames by inclusive share",
+                 inclusive(main, lambda f: "(pig/" in f or "/pig/" in f), total, top)
+    print_frames("The ranks' main threads together: innermost frames by share (time in the frame or in what it calls "
+                 "outside Python)", own(main), total, top)
+
+
+def print_frames(title: str, counts: Counter, total: int, top: int) -> None:
+    """A table of the `top` frames of `counts`, each with its share of `total` samples."""
+    print(f"\n{title}")
     print("| frame | samples | share |")
     print("|---|---|---|")
-    for frame, n in called.most_common(top):
-        print(f"| {frame} | {n} | {100 * n / total:.1f} % |")
-    print("\nThe ranks' main threads together: this project's frames by inclusive share")
-    print("| frame | samples | share |")
-    print("|---|---|---|")
-    for frame, n in inclusive(main, lambda f: "(pig/" in f or "/pig/" in f).most_common(top):
-        print(f"| {frame} | {n} | {100 * n / total:.1f} % |")
-    print("\nThe ranks' main threads together: innermost frames by share (time in the frame or in what it calls "
-          "outside Python)")
-    print("| frame | samples | share |")
-    print("|---|---|---|")
-    for frame, n in own(main).most_common(top):
+    for frame, n in counts.most_common(top):
         print(f"| {frame} | {n} | {100 * n / total:.1f} % |")
 
 

@@ -10,9 +10,10 @@
 # Each tree's output goes to $Q/ab_NAME.txt (NAME: the folder's name, `this` for .), which come back with the queue's tar.
 set -u
 [ -d /tmp/s/capture ] || python3 benchmarks/fit_gpu.py --workdir /tmp/s --seed 1 --frames 10 --capture-only > "$Q/ab_capture.txt" 2>&1 || exit 1
-gpus=$(nvidia-smi -L | wc -l) index=0
+gpus=$(nvidia-smi -L | wc -l) index=0 names=()
 for tree in "$@"; do
   path=$(cd "$tree" && pwd) name=$(basename "$path"); [ "$tree" = . ] && name=this
+  names+=("$name")
   mkdir -p /tmp/ab_$name/data && rm -rf /tmp/ab_$name/data/capture && cp -r /tmp/s/capture /tmp/ab_$name/data/capture
   (cd "$path" && PYTHONPATH=/tmp/site:$path CUDA_VISIBLE_DEVICES=$((index % gpus)) TORCHINDUCTOR_CACHE_DIR=/tmp/ic_$name \
     timeout 400 python3 benchmarks/fit_multi_gpu.py --workdir /tmp/ab_$name --gpus 1 --iterations 60 --warmup 40 \
@@ -20,7 +21,6 @@ for tree in "$@"; do
   index=$((index + 1))
 done
 wait
-for tree in "$@"; do
-  name=$(basename "$(cd "$tree" && pwd)"); [ "$tree" = . ] && name=this
+for name in "${names[@]}"; do
   echo "$name: $(grep -h "ms/it, peak" "$Q/ab_$name.txt")"
 done
