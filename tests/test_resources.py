@@ -6,8 +6,6 @@ from pathlib import Path
 import pytest
 import yaml
 
-import pig.data.formats  # noqa: F401  (imported by the workflow at DAG time; loaded once here for the forks)
-import pig.data.synthetic.config  # noqa: F401
 from pig.config import ConfigError, load_preset
 from pig.resources import RuleResources, check_rule_names, rule_resources
 

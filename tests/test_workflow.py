@@ -21,7 +21,7 @@ import pytest
 import snakemake.cli
 import yaml
 
-import pig.data.formats  # noqa: F401  (imported by the workflow at DAG time; loaded once here for the forks)
+import pig.data.formats  # noqa: F401  (imported by the workflow at DAG time; loaded once here for a forked run)
 import pig.data.synthetic.config  # noqa: F401
 from pig.stages.evaluate import EvaluateConfig, evaluate_split
 
