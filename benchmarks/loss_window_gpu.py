@@ -1,5 +1,5 @@
 """The training step's compiled L1 + SSIM loss (pig.avatar.training.LossTerms: image_loss with the shifted-sum
-blur under torch.compile) with SSIM's Gaussian window made three ways, forward and backward at the `paper` batch:
+blur under torch.compile) with SSIM's Gaussian window made four ways, forward and backward at the `paper` batch:
 
 - `constants`: the window as Python numbers (pig.metrics.ssim.TAPS, this code): constants of the kernels;
 - `device`: made inside the compiled graph on the device (2e5d54c and the commits since 5cc8b8f);
