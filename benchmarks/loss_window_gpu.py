@@ -19,7 +19,7 @@ order (run35's one round had `host` 5 ms faster than `constants`, which ran firs
 `--code-dir`: each form's compiled kernels as inductor wrote them (TORCH_LOGS=output_code) in DIR/FORM.txt, to read
 where a form's memory goes.
 
-On a CPU (no peak memory) it checks only that the three forms give the same loss and gradient.
+On a CPU (no peak memory) it checks only that the forms give the same loss and gradient.
 """
 from __future__ import annotations
 

@@ -72,9 +72,9 @@ def snakemake_exit(workdir: Path, *args: str, fork: bool = False) -> tuple[int, 
     return done.returncode, done.stdout
 
 
-def snakemake_run(workdir: Path, *args: str, fork: bool = False) -> str:
+def snakemake_run(workdir: Path, *args: str) -> str:
     """Output of `snakemake ARGS` on the workflow in `workdir` (snakemake_exit); fails the test when Snakemake fails."""
-    code, output = snakemake_exit(workdir, *args, fork=fork)
+    code, output = snakemake_exit(workdir, *args)
     assert code == 0, f"snakemake {' '.join(args)} exited {code}:\n{output[-5000:]}"
     return output
 
