@@ -1,10 +1,11 @@
 """The training step's compiled L1 + SSIM loss (pig.avatar.training.LossTerms: image_loss with the shifted-sum
 blur under torch.compile) with SSIM's Gaussian window made four ways, forward and backward at the `paper` batch:
 
-- `constants`: the window as Python numbers (pig.metrics.ssim.TAPS, this code): constants of the kernels;
+- `constants`: the window as Python numbers, constants of the kernels (8393f7b to 6958fcf);
 - `device`: made inside the compiled graph on the device (2e5d54c and the commits since 5cc8b8f);
 - `host`: made inside the compiled graph on the host, then copied to the device (26bda42 and before);
-- `input`: made once on the device before compilation, a tensor the compiled graph reads (a module's buffer would be).
+- `input`: made once on the device before compilation, a tensor the compiled graph reads (this code: LossTerms makes
+  it and passes it as image_loss's `ssim_window`).
 
 run33-run34 found a fit's peak memory 13-17 GiB higher and its backward 12 ms longer at 2e5d54c than at 26bda42 on
 one machine (benchmarks/NOTES.md, "the peak memory of a fit step"); the window is the one change between them inside
@@ -47,16 +48,18 @@ def window_made_on(where: str, dtype: torch.dtype, device: torch.device) -> torc
     return (taps / taps.sum()).to(dtype=dtype, device=device)
 
 
-def use_form(form: str, device: str) -> None:
-    """Point SSIM's "shift" blur at the window of `form` (inside the compiled loss, as the code of that form did)."""
-    if form == "constants":
-        return
+def use_form(form: str, device: str) -> torch.Tensor | None:
+    """The window to pass to the compiled loss for `form` ("input"), or None after pointing SSIM's "shift" blur at
+    the window of `form` (inside the compiled loss, as the code of that form did)."""
     if form == "input":
-        made_before = window_made_on("device", torch.float32, torch.device(device))
-        ssim_module.BLURS["shift"] = lambda images, taps: ssim_module._blur_shifted(images, made_before)
-        return
-    ssim_module.BLURS["shift"] = lambda images, taps: ssim_module._blur_shifted(
+        return ssim_module.gaussian_window(torch.float32, device)
+    if form == "constants":
+        taps = tuple(window_made_on("host", torch.float64, torch.device("cpu")).tolist())
+        ssim_module.BLURS["shift"] = lambda images, _: ssim_module._blur_shifted(images, taps)
+        return None
+    ssim_module.BLURS["shift"] = lambda images, _: ssim_module._blur_shifted(
         images, window_made_on(form, images.dtype, images.device))
+    return None
 
 
 def inputs(views: int, height: int, width: int, device: str, seed: int = 0):
@@ -70,8 +73,8 @@ def inputs(views: int, height: int, width: int, device: str, seed: int = 0):
 def run_form(form: str, views: int, height: int, width: int, iterations: int, device: str) -> dict:
     """One form in this process: the loss and gradient norm, and on CUDA the peak memory above the inputs (GiB) and
     the median ms of forward + backward after two compiling calls."""
-    use_form(form, device)
-    loss_fn = torch.compile(lambda r, t, b, bg: image_loss(r, t, b, bg, (0.8, 0.2, 0.0), None, "shift")["total"])
+    window = use_form(form, device)
+    loss_fn = torch.compile(lambda r, t, b, bg: image_loss(r, t, b, bg, (0.8, 0.2, 0.0), None, "shift", window)["total"])
     render, target, band, background = inputs(views, height, width, device)
     cuda = device.startswith("cuda")
     times = []

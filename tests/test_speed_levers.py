@@ -25,7 +25,7 @@ from pig.field.knn_graph import knn_laplacian
 from pig.field.knn_solve import CGNotConverged, CGSystem
 from pig.field.optim import Adam
 from pig.field.precondition import PrecondConfig
-from pig.metrics.ssim import TAPS, gaussian_window, ssim, ssim_map
+from pig.metrics.ssim import gaussian_window, ssim, ssim_map
 from pig.render.api import RenderError, render_gaussians, render_timesteps
 from avatar_fixture import small_avatar
 
@@ -167,13 +167,61 @@ def test_ssim_shift_blur_equals_conv_in_float64(size):
                                rtol=0, atol=1e-12)
 
 
-def test_shift_blur_window_is_scipys_gaussian():
-    """The shifted sums' Python taps: scipy.ndimage.gaussian_filter1d's weights (sigma 1.5, radius 5), to float64
-    rounding, and in float32 the very values the convolutions' window tensor holds."""
+def test_ssim_window_is_scipys_gaussian():
+    """The window: scipy.ndimage.gaussian_filter1d's weights (sigma 1.5, radius 5), to float64 rounding."""
     offsets = np.arange(-5, 6, dtype=np.float64)
     weights = np.exp(-0.5 * (offsets / 1.5) ** 2)
-    np.testing.assert_allclose(TAPS, weights / weights.sum(), rtol=1e-15, atol=0)
-    assert torch.equal(torch.tensor(TAPS, dtype=torch.float32), gaussian_window(torch.float32, "cpu"))
+    np.testing.assert_allclose(gaussian_window(torch.float64, "cpu").numpy(), weights / weights.sum(), rtol=1e-15, atol=0)
+
+
+@pytest.mark.parametrize("blur", ["conv", "shift"])
+def test_ssim_with_a_window_passed_equals_the_window_made_inside(blur):
+    """A window passed (float32, as the fit makes it) gives the SSIM of the window made inside, in float32 and, cast
+    to the images' dtype, in float64 (float32 taps: ~1e-8 relative of each, bound 1e-7); a window of another size or
+    device is refused by name."""
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(2, 3, 17, 21, generator=g, dtype=torch.float64)
+    y = (x + 0.2 * torch.randn(x.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    window = gaussian_window(torch.float32, "cpu")
+    torch.testing.assert_close(ssim(x.float(), y.float(), reduction="none", blur=blur, window=window),
+                               ssim(x.float(), y.float(), reduction="none", blur=blur), rtol=0, atol=0)
+    torch.testing.assert_close(ssim(x, y, reduction="none", blur=blur, window=window),
+                               ssim(x, y, reduction="none", blur=blur), rtol=0, atol=1e-7)
+    with pytest.raises(ValueError, match=r"window must be gaussian_window's \(11,\) taps on cpu, found \(9,\) on cpu"):
+        ssim(x, y, blur=blur, window=window[1:-1])
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"taps on cpu, found \(11,\) on cuda"):
+            ssim(x, y, blur=blur, window=window.cuda())
+
+
+def test_compiled_loss_reads_a_window_made_before_compilation(monkeypatch):
+    """LossTerms' compiled L1 + SSIM reads SSIM's window as an input of its graph, made once: made inside the graph
+    (arange, exp) it cost 17 GiB and 6 ms a step on the GPU, and as Python constants inductor loaded 44 values an
+    output in the blur's column pass against 22 (run35-run36). The graphs dynamo hands its backend are inspected."""
+    graphs, inputs = [], []
+
+    def inspect(gm, example_inputs):
+        graphs.append(gm.graph)
+        inputs.extend(example_inputs)
+        return gm.forward
+
+    compile_ = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, mode=None: compile_(fn, backend=inspect))
+    background = torch.tensor([0.2, 0.3, 0.4])
+    loss = LossTerms(FitConfig(weight_lpips=0.0, band_radius_px=2.0, band_reference_height=16), background, None,
+                     compiled=True)
+    g = torch.Generator().manual_seed(2)
+    render, images = torch.rand(2, 2, 16, 20, 3, generator=g).unbind(0)
+    masks = torch.ones(2, 16, 20, dtype=torch.bool)
+    terms = loss(render.requires_grad_(), images, masks, 16)
+    reference = LossTerms(FitConfig(weight_lpips=0.0, band_radius_px=2.0, band_reference_height=16), background, None,
+                          compiled=False)(render, images, masks, 16)
+    torch.testing.assert_close(terms["total"], reference["total"], rtol=1e-6, atol=0)
+    assert graphs
+    called = {node.target for graph in graphs for node in graph.nodes if node.op == "call_function"}
+    assert torch.arange not in called and torch.exp not in called
+    windows = [t for t in inputs if isinstance(t, torch.Tensor) and t.shape == (11,)]
+    assert len(windows) == 1 and torch.equal(windows[0], gaussian_window(torch.float32, "cpu"))
 
 
 def test_compiled_shift_ssim_matches_conv_in_float32():

@@ -138,16 +138,17 @@ def apply_band(images: torch.Tensor, band: torch.Tensor, background: torch.Tenso
 
 
 def image_loss(render: torch.Tensor, target: torch.Tensor, band: torch.Tensor, background: torch.Tensor,
-               weights: tuple[float, float, float], lpips=None, blur: str = "conv") -> dict[str, torch.Tensor]:
+               weights: tuple[float, float, float], lpips=None, blur: str = "conv",
+               ssim_window: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Loss terms of (B, H, W, 3) render and target; `lpips` is a module or None (term left out); `blur`
-    picks SSIM's implementation (pig.metrics.ssim.ssim_map).
+    picks SSIM's implementation and `ssim_window` is its window (pig.metrics.ssim.ssim_map).
 
     Returns {"l1", "ssim", "lpips" (if used), "total"}; "ssim" holds 1 - SSIM.
     """
     w_l1, w_ssim, w_lpips = weights
     x = apply_band(render, band, background).permute(0, 3, 1, 2)
     y = apply_band(target, band, background).permute(0, 3, 1, 2)
-    terms = {"l1": (x - y).abs().mean(), "ssim": 1 - ssim(x, y, blur=blur)}
+    terms = {"l1": (x - y).abs().mean(), "ssim": 1 - ssim(x, y, blur=blur, window=ssim_window)}
     total = w_l1 * terms["l1"] + w_ssim * terms["ssim"]
     if lpips is not None and w_lpips > 0:
         terms["lpips"] = lpips(x, y).mean()

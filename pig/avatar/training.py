@@ -53,6 +53,7 @@ from pig.field.latent_grid import FieldConfig
 from pig.field.precondition import PrecondConfig
 from pig.metrics.lpips import TrainingLPIPS
 from pig.metrics.psnr import psnr
+from pig.metrics.ssim import gaussian_window
 from pig.progress import LOG_INTERVAL_S
 from pig.render.api import RasterizerConfig, render_gaussians, render_timesteps
 from pig._io import write_text
@@ -176,7 +177,8 @@ class LossTerms:
                                                                 cfg.lpips_compile, cfg.compile_mode)
         weights = (cfg.weight_l1, cfg.weight_ssim, 0.0)
         blur = "shift" if compiled else "conv"
-        l1_ssim = lambda render, target, band: image_loss(render, target, band, background, weights, None, blur)
+        window = gaussian_window(torch.float32, background.device)  # made once, outside the compiled graph
+        l1_ssim = lambda render, target, band: image_loss(render, target, band, background, weights, None, blur, window)
         self._l1_ssim = torch.compile(l1_ssim, mode=cfg.compile_mode) if compiled else l1_ssim
         self.at(0, 0.0)
 

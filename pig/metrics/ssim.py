@@ -6,7 +6,6 @@ after cropping the 5-pixel border the window reaches past), computed here with v
 """
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import torch
@@ -17,20 +16,10 @@ RADIUS = 5  # scikit-image / scipy: int(truncate * sigma + 0.5) with truncate = 
 K1, K2 = 0.01, 0.03
 
 
-def _window_taps() -> tuple[float, ...]:
-    weights = [math.exp(-0.5 * (offset / SIGMA) ** 2) for offset in range(-RADIUS, RADIUS + 1)]
-    total = math.fsum(weights)
-    return tuple(weight / total for weight in weights)
-
-
-# The window as Python numbers, for the shifted sums: under torch.compile they are constants of its kernels, so the
-# compiled loss makes, copies and saves for its backward no window tensor (eleven scalars when made on the host).
-TAPS = _window_taps()
-
-
 def gaussian_window(dtype: torch.dtype, device: torch.device | str | None = None) -> torch.Tensor:
     """Normalised 1-D Gaussian taps (11,), as scipy.ndimage.gaussian_filter1d builds them. Computed on `device`: made
-    on the host, their copy to a GPU was a blocking copy in every loss evaluation (a host synchronisation)."""
+    on the host, their copy to a GPU was a blocking copy in every loss evaluation (a host synchronisation). A compiled
+    loss takes one made before compilation (ssim_map's `window`)."""
     offsets = torch.arange(-RADIUS, RADIUS + 1, dtype=torch.float64, device=device)
     taps = torch.exp(-0.5 * (offsets / SIGMA) ** 2)
     return (taps / taps.sum()).to(dtype=dtype, device=device)
@@ -45,7 +34,7 @@ def _blur_valid(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     return F.conv2d(F.conv2d(images, rows, groups=channels), cols, groups=channels)
 
 
-def _blur_shifted(images: torch.Tensor, taps: Sequence[float] | torch.Tensor) -> torch.Tensor:
+def _blur_shifted(images: torch.Tensor, taps: torch.Tensor | Sequence[float]) -> torch.Tensor:
     """`_blur_valid` as weighted sums of shifted slices: slow eagerly, but torch.compile fuses each pass into one
     memory-bound kernel (3.3 against 11.9 ms for the grouped convolutions, SSIM of 4 x 1330 x 1150 forward and
     backward on an H100; benchmarks/NOTES.md, "Fit")."""
@@ -58,9 +47,15 @@ def _blur_shifted(images: torch.Tensor, taps: Sequence[float] | torch.Tensor) ->
 BLURS = {"conv": _blur_valid, "shift": _blur_shifted}
 
 
-def ssim_map(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0, blur: str = "conv") -> torch.Tensor:
+def ssim_map(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0, blur: str = "conv",
+             window: torch.Tensor | None = None) -> torch.Tensor:
     """Per-pixel SSIM (B, C, H-10, W-10) of images (B, C, H, W), on the interior; `blur` "conv" (grouped
-    convolutions) or "shift" (shifted sums, for torch.compile) computes the same Gaussian window."""
+    convolutions) or "shift" (shifted sums, for torch.compile) computes the same Gaussian window.
+
+    `window`: gaussian_window on x's device, made here when None. Under torch.compile pass one made before: made
+    inside the graph it cost 17 GiB and 6 ms a step, and as Python constants inductor recomputes three of the row
+    pass's taps in each of the column pass's (44 loads an output against 22, 5 ms; benchmarks/NOTES.md, "SSIM's
+    window as a tensor made once")."""
     if blur not in BLURS:
         raise ValueError(f"ssim: blur must be one of {sorted(BLURS)}, found {blur!r}")
     if x.shape != y.shape or x.dim() != 4:
@@ -71,10 +66,15 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0, blur: st
     # convolutions to cuDNN's NHWC engine with layout transforms, measured ~5 ms per call at 4 x 1330 x 1150
     # on an H200 (benchmarks/NOTES.md, "Fit stage on the GPU: where the time goes").
     x, y = x.contiguous(), y.contiguous()
-    taps = TAPS if blur == "shift" else gaussian_window(x.dtype, x.device)
+    if window is None:
+        window = gaussian_window(x.dtype, x.device)
+    elif window.shape != (2 * RADIUS + 1,) or window.device != x.device:
+        raise ValueError(f"ssim: window must be gaussian_window's ({2 * RADIUS + 1},) taps on {x.device}, found "
+                         f"{tuple(window.shape)} on {window.device}")
+    window = window.to(x.dtype)  # the grouped convolutions take one dtype
     # One batched filter pass over the five moments instead of five passes.
     stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)
-    mu_x, mu_y, xx, yy, xy = BLURS[blur](stacked, taps).chunk(5, dim=1)
+    mu_x, mu_y, xx, yy, xy = BLURS[blur](stacked, window).chunk(5, dim=1)
     var_x = xx - mu_x * mu_x
     var_y = yy - mu_y * mu_y
     cov = xy - mu_x * mu_y
@@ -85,9 +85,11 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0, blur: st
     return numerator / denominator
 
 
-def ssim(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0, reduction: str = "mean", blur: str = "conv") -> torch.Tensor:
-    """Mean SSIM of images (B, C, H, W): "mean" -> scalar over the batch, "none" -> (B,); `blur` as in ssim_map."""
-    per_image = ssim_map(x, y, data_range, blur).flatten(1).mean(1)
+def ssim(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0, reduction: str = "mean", blur: str = "conv",
+         window: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean SSIM of images (B, C, H, W): "mean" -> scalar over the batch, "none" -> (B,); `blur` and `window` as in
+    ssim_map."""
+    per_image = ssim_map(x, y, data_range, blur, window).flatten(1).mean(1)
     if reduction == "none":
         return per_image
     if reduction == "mean":
