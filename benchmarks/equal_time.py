@@ -216,7 +216,8 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
     `other` per seed and budget, their difference, and whether it is beyond the spread, the larger of the two
     variants' max - min over the seed-0 5-minute replicates (the issue's definition), split by split. A lever is a
     pair of labels `leader LEVER` and `other LEVER` (e.g. "pig average 0.99", "no_precond average 0.99"): its rows
-    follow the plain variants', against the same spread."""
+    follow the plain variants', against the same spread. A lever that changes nothing on `other` (a manifest entry's
+    `inert: [no_precond]`, e.g. the grid's ramp: no_precond has no preconditioner) is compared with plain `other`."""
     def finals(variant, seed, budget, split):
         return [v for f in fits if (f["variant"], f["seed"], f["budget_s"]) == (variant, seed, budget)
                 for v in [metric(f, split, "psnr")] if not math.isnan(v)]
@@ -226,8 +227,10 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
         ranges = [max(v) - min(v) for v in (finals(leader, 0, 300, split), finals(other, 0, 300, split)) if len(v) > 1]
         spreads[split] = max(ranges) if ranges else math.nan
     names = {f["variant"] for f in fits}
+    inert = {f["variant"][len(leader):] for f in fits if f["variant"].startswith(leader + " ") and other in f.get("inert", ())}
     levers = [""] + sorted(name[len(leader):] for name in names
-                           if name.startswith(leader + " ") and other + name[len(leader):] in names)
+                           if name.startswith(leader + " ") and (other + name[len(leader):] in names
+                                                                 or name[len(leader):] in inert))
     lines = ["", f"Issue 38's rule: `{leader}` against `{other}`, beyond the spread (the larger of the two variants' "
              f"max - min over the seed-0 5-minute replicates: novel view {spreads['novel_view']:.3f} dB, novel pose "
              f"{spreads['novel_pose']:.3f} dB)", "",
@@ -236,7 +239,8 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
     for lever in levers:
         for seed, budget in sorted({(f["seed"], f["budget_s"]) for f in fits}):
             for split in ("novel_view", "novel_pose"):
-                mine, theirs = finals(leader + lever, seed, budget, split), finals(other + lever, seed, budget, split)
+                partner = other if lever in inert else other + lever
+                mine, theirs = finals(leader + lever, seed, budget, split), finals(partner, seed, budget, split)
                 if not (mine and theirs):
                     continue
                 difference = float(np.mean(mine) - np.mean(theirs))
@@ -246,7 +250,8 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
                     verdict = f"{leader if difference > 0 else other} beyond"
                 else:
                     verdict = "within the spread"
-                lines.append(f"| {lever.strip() or '-'} | {seed} | {budget / 60:g} min | {split} | {np.mean(mine):.2f} "
+                name = f"{lever.strip()} ({other} plain: inert there)" if lever in inert else lever.strip() or "-"
+                lines.append(f"| {name} | {seed} | {budget / 60:g} min | {split} | {np.mean(mine):.2f} "
                              f"({len(mine)}) | {np.mean(theirs):.2f} ({len(theirs)}) | {difference:+.3f} | {verdict} |")
     return "\n".join(lines)
 

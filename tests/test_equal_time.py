@@ -158,8 +158,19 @@ def test_a_lever_on_both_variants_gets_its_own_rows_against_the_plain_spread():
     fits = [_final("pig", 0, 300, v) for v in (30.0, 31.0, 30.5)] + [_final("no_precond", 0, 300, 30.3)]  # NV 1.0
     fits += [_final("pig paper rates", 0, 900, 32.5), _final("no_precond paper rates", 0, 900, 31.0),  # +1.5
              _final("pig eps 1e-15", 0, 900, 31.0), _final("no_precond eps 1e-15", 0, 900, 30.8),  # +0.2
-             _final("pig cg_tol 1e-3", 0, 900, 33.0)]  # on pig alone: no pair, no row
+             _final("pig uniform Adam", 0, 900, 33.0)]  # no_precond's fit not run yet: no pair, no row
     lines = [line for line in rule_table(fits).splitlines() if line.startswith("| ") and "min" in line]
     assert [line.split(" | ")[0] for line in lines] == ["| -", "| eps 1e-15", "| paper rates"]
     assert lines[2].startswith("| paper rates | 0 | 15 min | novel_view | 32.50 (1) | 31.00 (1) | +1.500 | pig beyond |")
     assert lines[1].endswith("| +0.200 | within the spread |")
+
+
+def test_a_lever_inert_on_the_other_variant_is_compared_with_its_plain_fits():
+    """A lever that changes nothing on no_precond (the manifest's `inert`) gets rows against plain no_precond, named
+    so; without `inert` a lever on pig alone gets none."""
+    fits = [_final("pig", 0, 300, v) for v in (30.0, 31.0, 30.5)] + [_final("no_precond", 0, 300, 30.3)]  # NV 1.0
+    fits += [_final("no_precond", 0, 900, 31.0), _final("no_precond", 0, 900, 31.4),
+             {**_final("pig ramp 3000", 0, 900, 32.5), "inert": ["no_precond"]}, _final("pig cg_tol 1e-3", 0, 900, 33.0)]
+    lines = [line for line in rule_table(fits).splitlines() if line.startswith("| ") and "min" in line]
+    assert [line.split(" | ")[0] for line in lines] == ["| -", "| ramp 3000 (no_precond plain: inert there)"]
+    assert lines[1].endswith("| novel_view | 32.50 (1) | 31.20 (2) | +1.300 | pig beyond |")

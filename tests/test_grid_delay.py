@@ -1,5 +1,8 @@
-"""Delayed grid preconditioning (precond.grid_delay): plain grid steps first, then the Sobolev-smoothed ones."""
+"""Delayed and ramped grid preconditioning (precond.grid_delay, precond.grid_ramp): plain grid steps first, then the
+Sobolev-smoothed ones, at once or in stages; and the anchors' learning-rate warm-up (precond.anchor_warmup)."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 import torch
@@ -81,9 +84,31 @@ def test_set_lambdas_refuses_a_plain_grid_and_a_wrong_count():
         _grid("substitute", LAMBDAS).set_lambdas([1.0])
 
 
-def test_negative_delay_is_refused_with_the_key_named():
-    with pytest.raises(ConfigError, match="precond.grid_delay must be at least 0"):
-        load_section({"precond": {"grid_delay": -1}}, "precond", PrecondConfig)
+@pytest.mark.parametrize("key", ["grid_delay", "grid_ramp", "anchor_warmup"])
+def test_negative_schedule_lengths_are_refused_with_the_key_named(key):
+    with pytest.raises(ConfigError, match=f"precond.{key} must be at least 0, found -1"):
+        load_section({"precond": {key: -1}}, "precond", PrecondConfig)
+    with pytest.raises(ConfigError, match="precond.grid_ramp_stages must be at least 1, found 0"):
+        load_section({"precond": {"grid_ramp_stages": 0}}, "precond", PrecondConfig)
+
+
+@pytest.mark.parametrize("delay, ramp, stages, expected", [
+    (0, 0, 4, [1.0] * 6),  # the paper's schedule
+    (3, 0, 4, [0, 0, 0, 1, 1, 1]),  # grid_delay alone: one switch
+    (0, 8, 4, [0, 0, 0.25, 0.25, 0.5, 0.5, 0.75, 0.75, 1, 1]),
+    (2, 6, 3, [0, 0, 0, 0, 1 / 3, 1 / 3, 2 / 3, 2 / 3, 1, 1]),
+    (1, 3, 4, [0, 0, 0.25, 0.5, 1, 1]),  # more stages than iterations: a stage per iteration, the last ones skipped
+    (0, 5, 1, [0, 0, 0, 0, 0, 1, 1]),  # one stage: the delay by another name
+])
+def test_grid_lambda_scale_follows_the_delay_then_the_ramps_stages(delay, ramp, stages, expected):
+    cfg = PrecondConfig(grid_delay=delay, grid_ramp=ramp, grid_ramp_stages=stages)
+    assert [cfg.grid_lambda_scale(i) for i in range(len(expected))] == pytest.approx(expected, abs=0)
+    assert cfg.grid_lambda_scale(10**6) == 1.0
+
+
+def test_anchor_lr_scale_ramps_linearly_to_one():
+    assert [PrecondConfig(anchor_warmup=4).anchor_lr_scale(i) for i in range(6)] == [0.25, 0.5, 0.75, 1, 1, 1]
+    assert PrecondConfig().anchor_lr_scale(0) == 1.0
 
 
 def _preset(tmp_path, name: str, iterations: int, **precond) -> str:
@@ -114,6 +139,26 @@ def _same_state(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
 
 
+def _assert_plain_until(small_capture, tmp_path, name: str, preset: str, stop: int) -> None:
+    """`preset`'s fit killed after `stop` iterations has the checkpoint of a fit with grid lambda 0 (and the same
+    iteration count, which the schedule follows), bit for bit."""
+    from pig.avatar.training import fit
+
+    plain = _preset(tmp_path, "plain", load_preset(preset)["fit"]["iterations"], grid_lambda=0.0)
+    for folder, spec in ((name, preset), ("plain", plain)):
+        with pytest.raises(Killed):
+            fit(small_capture, tmp_path / folder, spec, on_iteration=_killed_at(stop))
+    states = [torch.load(tmp_path / folder / "checkpoint.pt", weights_only=True) for folder in (name, "plain")]
+    assert states[0]["iteration"] == states[1]["iteration"] == stop
+    assert _same_state(states[0]["model"], states[1]["model"])
+
+
+def _field_steps(checkpoint: Path) -> dict[str, int]:
+    """Adam's step count of each field optimiser group in a checkpoint."""
+    state = torch.load(checkpoint, weights_only=True)["optimizers"][0]
+    return {group["name"]: int(state["state"][group["params"][0]]["step"]) for group in state["param_groups"]}
+
+
 @pytest.mark.slow
 def test_delayed_fit_trains_the_grid_plainly_first_and_resumes_across_the_switch(small_capture, tmp_path):
     """grid_delay 3 of 6 iterations:
@@ -124,21 +169,13 @@ def test_delayed_fit_trains_the_grid_plainly_first_and_resumes_across_the_switch
 
     delayed = _preset(tmp_path, "delayed", 6, grid_delay=3)
     reference = fit(small_capture, tmp_path / "full", delayed)
-    plain = _preset(tmp_path, "plain", 6, grid_lambda=0.0)
-    for name, preset in (("delayed", delayed), ("plain", plain)):
-        with pytest.raises(Killed):
-            fit(small_capture, tmp_path / name, preset, on_iteration=_killed_at(3))
-    at_3 = [torch.load(tmp_path / name / "checkpoint.pt", weights_only=True) for name in ("delayed", "plain")]
-    assert at_3[0]["iteration"] == at_3[1]["iteration"] == 3
-    assert _same_state(at_3[0]["model"], at_3[1]["model"])
+    _assert_plain_until(small_capture, tmp_path, "delayed", delayed, 3)
 
     resumed_at_3 = fit(small_capture, tmp_path / "delayed", delayed)
     with pytest.raises(Killed):
         fit(small_capture, tmp_path / "late", delayed, on_iteration=_killed_at(5))
     # The switch restarted the grid levels' Adam moments (2 steps since) and not the anchors' (5 steps).
-    field_state = torch.load(tmp_path / "late" / "checkpoint.pt", weights_only=True)["optimizers"][0]
-    steps = {group["name"]: int(field_state["state"][group["params"][0]]["step"]) for group in field_state["param_groups"]}
-    assert steps == {"grid0": 2, "grid1": 2, "anchors": 5}, steps
+    assert _field_steps(tmp_path / "late" / "checkpoint.pt") == {"grid0": 2, "grid1": 2, "anchors": 5}
     resumed_at_5 = fit(small_capture, tmp_path / "late", delayed)
     final = load_avatar(reference).state_dict()
     for resumed in (resumed_at_3, resumed_at_5):
@@ -158,3 +195,43 @@ def test_fit_stopped_before_the_switch_stores_its_grid_under_the_preset_lambdas(
     assert stopped.grid.levels[-1].system.lam > 0 == plain.grid.levels[-1].system.lam
     for a, b in zip(stopped.grid.volumes(), plain.grid.volumes()):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_ramped_fit_moves_through_its_stages_and_resumes_inside_one(small_capture, tmp_path):
+    """grid_ramp 4 in 2 stages over 6 iterations (lambda scale 0, 0, 0.5, 0.5, 1, 1):
+    - its checkpoint after 2 iterations equals that of a fit with grid lambda 0, bit for bit;
+    - killed inside the half stage (after 3) or after the last switch (5) and resumed, it ends as the uninterrupted
+      fit; the last switch restarted the grid levels' moments (1 step since) and not the anchors' (5);
+    - avatar.pt reads back under the preset's lambdas."""
+    from pig.avatar.training import fit
+
+    ramped = _preset(tmp_path, "ramped", 6, grid_ramp=4, grid_ramp_stages=2)
+    reference = fit(small_capture, tmp_path / "full", ramped)
+    _assert_plain_until(small_capture, tmp_path, "ramped", ramped, 2)
+
+    final = load_avatar(reference).state_dict()
+    for name, stop in (("mid", 3), ("late", 5)):
+        with pytest.raises(Killed):
+            fit(small_capture, tmp_path / name, ramped, on_iteration=_killed_at(stop))
+        if stop == 5:
+            assert _field_steps(tmp_path / name / "checkpoint.pt") == {"grid0": 1, "grid1": 1, "anchors": 5}
+        assert _same_state(final, load_avatar(fit(small_capture, tmp_path / name, ramped)).state_dict()), name
+    assert load_avatar(reference).grid.levels[0].system.lam == load_preset(ramped)["precond"]["grid_lambda"]
+
+
+@pytest.mark.slow
+def test_anchor_warmup_scales_the_anchors_rate_alone(small_capture, tmp_path):
+    """anchor_warmup 4: after 3 iterations the anchors' rate is 3/4 of the fit's schedule times their base rate,
+    every other group's the schedule times its base rate (the checkpoint's optimiser groups)."""
+    from pig.avatar.training import fit
+
+    preset = _preset(tmp_path, "warm", 6, anchor_warmup=4)
+    with pytest.raises(Killed):
+        fit(small_capture, tmp_path / "warm", preset, on_iteration=_killed_at(3))
+    groups = torch.load(tmp_path / "warm" / "checkpoint.pt", weights_only=True)["optimizers"][0]["param_groups"]
+    cfg = load_section(load_preset(preset), "precond", PrecondConfig)
+    base = {f"grid{g}": lr for g, lr in enumerate(cfg.grid_lrs(len(groups) - 1))} | {"anchors": cfg.anchor_lr}
+    factors = {group["name"]: group["lr"] / base[group["name"]] for group in groups}
+    assert factors["anchors"] == pytest.approx(0.75 * factors["grid0"], rel=1e-12)
+    assert factors["grid0"] == pytest.approx(factors["grid1"], rel=1e-12) and 0 < factors["grid0"] <= 1

@@ -386,16 +386,21 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
     lpips, lpips_record = lpips_term(fit_cfg, device)
     loss_terms = {"lpips": lpips_record}
-    # Delayed grid preconditioning: plain grid steps (lambda 0) before iteration `grid_delay`. A checkpoint written
-    # before the switch stores the grid under lambda 0; the final avatar.pt always under the preset's lambdas.
-    grid_delay = precond_cfg.grid_delay if precond_cfg.form != "none" else 0
+    # Delayed and ramped grid preconditioning: the grid's lambdas are grid_lambda_scale(i) of the preset's during
+    # iteration i (plain steps before `grid_delay`, then the ramp's stages). A checkpoint stores the grid under the
+    # lambdas of the iteration before it; the final avatar.pt always under the preset's.
+    scheduled = precond_cfg.form != "none" and (precond_cfg.grid_delay > 0 or precond_cfg.grid_ramp > 0)
+    lambda_scale = precond_cfg.grid_lambda_scale if scheduled else lambda iteration: 1.0
     grid_lambdas = precond_cfg.grid_lambdas(len(model.grid.levels))
-    if grid_delay:
-        model.grid.set_lambdas([0.0] * len(grid_lambdas))
+    grid_scale = lambda_scale(0)
+    if grid_scale != 1.0:
+        model.grid.set_lambdas([grid_scale * lam for lam in grid_lambdas])
 
-    def start_grid_smoothing() -> None:
-        model.grid.set_lambdas(grid_lambdas)
-        for level in model.grid.levels:  # moments of lambda-0 gradients would damp the smoothed steps for ~1/(1 - beta2)
+    def set_grid_scale(scale: float) -> None:
+        nonlocal grid_scale
+        grid_scale = scale
+        model.grid.set_lambdas([scale * lam for lam in grid_lambdas])
+        for level in model.grid.levels:  # moments of the weaker smoothing's gradients would damp the steps for ~1/(1 - beta2)
             optimizers[0].state.pop(level.param, None)
         if average is not None:  # the grid's tensors were re-based: an average across the switch means nothing
             average.restart()
@@ -409,8 +414,9 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         # The checkpoint's own row (a save logs one) holds the training seconds so far; older logs lack them.
         train_before = float(rows[-1].get("train_s") or wall_before) if rows else wall_before
         compile_before = float(rows[-1].get("compile_s") or 0.0) if rows else 0.0
-        if grid_delay and start > grid_delay:
-            model.grid.set_lambdas(grid_lambdas, keep_values=False)
+        if start > 0 and lambda_scale(start - 1) != grid_scale:  # the stored grid's meaning: its lambdas then
+            grid_scale = lambda_scale(start - 1)
+            model.grid.set_lambdas([grid_scale * lam for lam in grid_lambdas], keep_values=False)
     if parallel is not None:
         parallel.check_replicas(model, f"at iteration {start}")
 
@@ -510,12 +516,13 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 stop, done = parallel.decide(stop, done, sampler.picks(i).share.digest, i)
             if stop:
                 break
-            if grid_delay and i == grid_delay:
-                start_grid_smoothing()
+            if lambda_scale(i) != grid_scale:
+                set_grid_scale(lambda_scale(i))
             factor = lr_factor(done, i, fit_cfg.lr_warmup, fit_cfg.lr_final)
+            anchor_factor = factor * precond_cfg.anchor_lr_scale(i)
             for opt, lrs in zip(optimizers, base_lrs):
                 for group, lr in zip(opt.param_groups, lrs):
-                    group["lr"] = lr * factor
+                    group["lr"] = lr * (anchor_factor if group.get("name") == "anchors" else factor)
             loss.at(i, done)
             if fit_cfg.compile_mode == "reduce-overhead":  # the last step's graph outputs may be overwritten from here
                 torch.compiler.cudagraph_mark_step_begin()
@@ -591,8 +598,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         print("fit: left out of the training seconds: " + ", ".join(f"{kind} {seconds:.1f} s" for kind, seconds in
                                                                     sorted(clock.excluded.items())), file=sys.stderr)
 
-    if grid_delay and iteration <= grid_delay:  # stopped before the switch: store the grid under the preset's lambdas
-        start_grid_smoothing()
+    if grid_scale != 1.0:  # stopped before the ramp's end: store the grid under the preset's lambdas
+        set_grid_scale(1.0)
     if parallel is not None:
         reducer.close()
         if shards is not None:

@@ -80,14 +80,25 @@ class PrecondConfig:
     # level keeps its values and its optimiser state restarts (pig.avatar.training). The anchors are not delayed;
     # form 'none' has nothing to delay.
     grid_delay: int = 0
+    # Iterations after grid_delay over which the grid's lambdas ramp from 0 to the preset's, in grid_ramp_stages equal
+    # steps (0: no ramp). Each stage re-bases the grid and restarts its moments, as grid_delay's switch does, so the
+    # stages are few; grid_delay alone is the ramp of one stage.
+    grid_ramp: int = 0
+    grid_ramp_stages: int = 4
+    # Iterations over which the anchors' learning rate ramps linearly from 0, on top of the fit's schedule (0: none,
+    # the paper's).
+    anchor_warmup: int = 0
     # Adam's eps of the field optimiser ("adam", "uniform_adam"; the decoders keep theirs). The grid's gradients are
     # of its order (1e-9..1e-6 per cell, smaller still after the substitution's solve), so it damps the fine levels'
     # steps (benchmarks/NOTES.md, "Fit", issue 38); 1e-8 is torch's default, which the paper does not change.
     adam_eps: float = 1e-8
 
     def __post_init__(self):
-        if self.grid_delay < 0:
-            raise ConfigError(f"precond.grid_delay must be at least 0, found {self.grid_delay}")
+        for key in ("grid_delay", "grid_ramp", "anchor_warmup"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"precond.{key} must be at least 0, found {getattr(self, key)}")
+        if self.grid_ramp_stages < 1:
+            raise ConfigError(f"precond.grid_ramp_stages must be at least 1, found {self.grid_ramp_stages}")
         if not self.adam_eps > 0:
             raise ConfigError(f"precond.adam_eps must be positive, found {self.adam_eps}")
 
@@ -96,6 +107,20 @@ class PrecondConfig:
 
     def grid_lambdas(self, levels: int) -> list[float]:
         return [self.grid_lambda * self.grid_lambda_growth**g for g in range(levels)]
+
+    def grid_lambda_scale(self, iteration: int) -> float:
+        """The fraction of grid_lambdas in effect during `iteration`: 0 before grid_delay, then the ramp's stage
+        (k / stages for the k-th of grid_ramp's equal parts, the first plain), 1 from grid_delay + grid_ramp on."""
+        since = iteration - self.grid_delay
+        if since < 0:
+            return 0.0
+        if since >= self.grid_ramp:
+            return 1.0
+        return (since * self.grid_ramp_stages // self.grid_ramp) / self.grid_ramp_stages
+
+    def anchor_lr_scale(self, iteration: int) -> float:
+        """The anchors' warm-up factor during `iteration` (1 once anchor_warmup iterations have passed)."""
+        return min(1.0, (iteration + 1) / self.anchor_warmup) if self.anchor_warmup else 1.0
 
 
 class SubstitutionSolve(torch.autograd.Function):
