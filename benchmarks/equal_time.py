@@ -227,7 +227,8 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
         ranges = [max(v) - min(v) for v in (finals(leader, 0, 300, split), finals(other, 0, 300, split)) if len(v) > 1]
         spreads[split] = max(ranges) if ranges else math.nan
     names = {f["variant"] for f in fits}
-    inert = {f["variant"][len(leader):] for f in fits if f["variant"].startswith(leader + " ") and other in f.get("inert", ())}
+    inert = {f["variant"][len(leader):] for f in fits
+             if f["variant"].startswith(leader + " ") and other in f.get("inert", ())}
     levers = [""] + sorted(name[len(leader):] for name in names
                            if name.startswith(leader + " ") and (other + name[len(leader):] in names
                                                                  or name[len(leader):] in inert))

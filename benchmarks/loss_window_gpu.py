@@ -74,7 +74,8 @@ def run_form(form: str, views: int, height: int, width: int, iterations: int, de
     """One form in this process: the loss and gradient norm, and on CUDA the peak memory above the inputs (GiB) and
     the median ms of forward + backward after two compiling calls."""
     window = use_form(form, device)
-    loss_fn = torch.compile(lambda r, t, b, bg: image_loss(r, t, b, bg, (0.8, 0.2, 0.0), None, "shift", window)["total"])
+    loss_fn = torch.compile(
+        lambda r, t, b, bg: image_loss(r, t, b, bg, (0.8, 0.2, 0.0), None, "shift", window)["total"])
     render, target, band, background = inputs(views, height, width, device)
     cuda = device.startswith("cuda")
     times = []

@@ -170,7 +170,8 @@ def test_a_lever_inert_on_the_other_variant_is_compared_with_its_plain_fits():
     so; without `inert` a lever on pig alone gets none."""
     fits = [_final("pig", 0, 300, v) for v in (30.0, 31.0, 30.5)] + [_final("no_precond", 0, 300, 30.3)]  # NV 1.0
     fits += [_final("no_precond", 0, 900, 31.0), _final("no_precond", 0, 900, 31.4),
-             {**_final("pig ramp 3000", 0, 900, 32.5), "inert": ["no_precond"]}, _final("pig cg_tol 1e-3", 0, 900, 33.0)]
+             {**_final("pig ramp 3000", 0, 900, 32.5), "inert": ["no_precond"]},
+             _final("pig cg_tol 1e-3", 0, 900, 33.0)]
     lines = [line for line in rule_table(fits).splitlines() if line.startswith("| ") and "min" in line]
     assert [line.split(" | ")[0] for line in lines] == ["| -", "| ramp 3000 (no_precond plain: inert there)"]
     assert lines[1].endswith("| novel_view | 32.50 (1) | 31.20 (2) | +1.300 | pig beyond |")

@@ -171,7 +171,8 @@ def test_ssim_window_is_scipys_gaussian():
     """The window: scipy.ndimage.gaussian_filter1d's weights (sigma 1.5, radius 5), to float64 rounding."""
     offsets = np.arange(-5, 6, dtype=np.float64)
     weights = np.exp(-0.5 * (offsets / 1.5) ** 2)
-    np.testing.assert_allclose(gaussian_window(torch.float64, "cpu").numpy(), weights / weights.sum(), rtol=1e-15, atol=0)
+    window = gaussian_window(torch.float64, "cpu").numpy()
+    np.testing.assert_allclose(window, weights / weights.sum(), rtol=1e-15, atol=0)
 
 
 @pytest.mark.parametrize("blur", ["conv", "shift"])

@@ -400,7 +400,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         nonlocal grid_scale
         grid_scale = scale
         model.grid.set_lambdas([scale * lam for lam in grid_lambdas])
-        for level in model.grid.levels:  # moments of the weaker smoothing's gradients would damp the steps for ~1/(1 - beta2)
+        # moments of the weaker smoothing's gradients would damp the new steps for ~1/(1 - beta2) iterations
+        for level in model.grid.levels:
             optimizers[0].state.pop(level.param, None)
         if average is not None:  # the grid's tensors were re-based: an average across the switch means nothing
             average.restart()
