@@ -238,9 +238,10 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
              f"| lever | seed | budget | split | {leader} dB (fits) | {other} dB (fits) | difference dB | verdict |",
              "|---|---|---|---|---|---|---|---|"]
     for lever in levers:
+        partner = other if lever in inert else other + lever
+        name = f"{lever.strip()} ({other} plain: inert there)" if lever in inert else lever.strip() or "-"
         for seed, budget in sorted({(f["seed"], f["budget_s"]) for f in fits}):
             for split in ("novel_view", "novel_pose"):
-                partner = other if lever in inert else other + lever
                 mine, theirs = finals(leader + lever, seed, budget, split), finals(partner, seed, budget, split)
                 if not (mine and theirs):
                     continue
@@ -251,7 +252,6 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
                     verdict = f"{leader if difference > 0 else other} beyond"
                 else:
                     verdict = "within the spread"
-                name = f"{lever.strip()} ({other} plain: inert there)" if lever in inert else lever.strip() or "-"
                 lines.append(f"| {name} | {seed} | {budget / 60:g} min | {split} | {np.mean(mine):.2f} "
                              f"({len(mine)}) | {np.mean(theirs):.2f} ({len(theirs)}) | {difference:+.3f} | {verdict} |")
     return "\n".join(lines)

@@ -392,14 +392,15 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     scheduled = precond_cfg.form != "none" and (precond_cfg.grid_delay > 0 or precond_cfg.grid_ramp > 0)
     lambda_scale = precond_cfg.grid_lambda_scale if scheduled else lambda iteration: 1.0
     grid_lambdas = precond_cfg.grid_lambdas(len(model.grid.levels))
+    scaled_lambdas = lambda scale: [scale * lam for lam in grid_lambdas]
     grid_scale = lambda_scale(0)
     if grid_scale != 1.0:
-        model.grid.set_lambdas([grid_scale * lam for lam in grid_lambdas])
+        model.grid.set_lambdas(scaled_lambdas(grid_scale))
 
     def set_grid_scale(scale: float) -> None:
         nonlocal grid_scale
         grid_scale = scale
-        model.grid.set_lambdas([scale * lam for lam in grid_lambdas])
+        model.grid.set_lambdas(scaled_lambdas(scale))
         # moments of the weaker smoothing's gradients would damp the new steps for ~1/(1 - beta2) iterations
         for level in model.grid.levels:
             optimizers[0].state.pop(level.param, None)
@@ -417,7 +418,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
         compile_before = float(rows[-1].get("compile_s") or 0.0) if rows else 0.0
         if start > 0 and lambda_scale(start - 1) != grid_scale:  # the stored grid's meaning: its lambdas then
             grid_scale = lambda_scale(start - 1)
-            model.grid.set_lambdas([grid_scale * lam for lam in grid_lambdas], keep_values=False)
+            model.grid.set_lambdas(scaled_lambdas(grid_scale), keep_values=False)
     if parallel is not None:
         parallel.check_replicas(model, f"at iteration {start}")
 
@@ -517,8 +518,8 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
                 stop, done = parallel.decide(stop, done, sampler.picks(i).share.digest, i)
             if stop:
                 break
-            if lambda_scale(i) != grid_scale:
-                set_grid_scale(lambda_scale(i))
+            if (scale := lambda_scale(i)) != grid_scale:
+                set_grid_scale(scale)
             factor = lr_factor(done, i, fit_cfg.lr_warmup, fit_cfg.lr_final)
             anchor_factor = factor * precond_cfg.anchor_lr_scale(i)
             for opt, lrs in zip(optimizers, base_lrs):
