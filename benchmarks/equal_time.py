@@ -257,6 +257,21 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
     return "\n".join(lines)
 
 
+LEVER_MARKERS = "o^vDPX*<>hpd"
+
+
+def plot_styles(labels: list[str]) -> dict[str, tuple[int, str]]:
+    """Each fit label's (colour index, marker): the colour names the variant (the label's first word), the marker the
+    lever after it ("o" for the plain fit), so that a lever fit reads beside its plain partner."""
+    variants = sorted({label.split(" ", 1)[0] for label in labels})
+    levers = sorted({label.partition(" ")[2] for label in labels} - {""})
+    if len(variants) > 10 or len(levers) >= len(LEVER_MARKERS):
+        raise ValueError(f"{len(variants)} variants and {len(levers)} levers: the figure tells apart at most 10 "
+                         f"and {len(LEVER_MARKERS) - 1}")
+    markers = {"": LEVER_MARKERS[0]} | {lever: LEVER_MARKERS[i + 1] for i, lever in enumerate(levers)}
+    return {label: (variants.index(label.split(" ", 1)[0]), markers[label.partition(" ")[2]]) for label in labels}
+
+
 def plot(fits: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -267,21 +282,28 @@ def plot(fits: list[dict], path: Path) -> None:
     columns = 4
     rows = math.ceil(len(panels) / columns)
     fig, axes = plt.subplots(rows, columns, figsize=(4 * columns, 3.2 * rows), squeeze=False)
-    variants = sorted({f["variant"] for f in fits})
-    colours = {v: plt.cm.tab10(i) for i, v in enumerate(variants)}
-    styles = {0: "-", 1: "--"}
+    labels = sorted({f["variant"] for f in fits})
+    styles = plot_styles(labels)
+    line_styles = {0: "-", 1: "--"}
+
+    def look(label: str, seed: int) -> dict:  # seed 1 hollow, so the seeds stay apart where the points overlap
+        colour, marker = styles[label]
+        return {"color": plt.cm.tab10(colour), "marker": marker,
+                "markerfacecolor": "none" if seed else plt.cm.tab10(colour)}
+
     for ax, (title, spec) in zip(axes.flat, panels):
         for fit in fits:
-            colour, style = colours[fit["variant"]], styles.get(fit["seed"], ":")
+            kwargs = look(fit["variant"], fit["seed"])
             if spec is None:
                 t, psnr = zip(*fit["curve"][1:])  # the start (0 s, untrained) would squash the axis
-                ax.plot(np.array(t) / 60, psnr, style, color=colour, alpha=0.8)
+                ax.plot(np.array(t) / 60, psnr, line_styles.get(fit["seed"], ":"), alpha=0.8, markersize=3,
+                        linewidth=1, **kwargs)
             else:
                 value = metric(fit, spec[1], spec[2])
                 value = value[0] if isinstance(value, tuple) else value  # geometry: accuracy
                 if math.isnan(value):
                     continue
-                ax.plot(fit["budget_s"] / 60, value, "o" if fit["seed"] == 0 else "s", color=colour, alpha=0.8)
+                ax.plot(fit["budget_s"] / 60, value, linestyle="none", alpha=0.8, **kwargs)
         ax.set_title(title if spec is None or not isinstance(spec[2], tuple) else title.split(" / ")[0] + " mm",
                      fontsize=9)
         ax.set_xlabel("training minutes")
@@ -289,11 +311,16 @@ def plot(fits: list[dict], path: Path) -> None:
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
-    handles = [plt.Line2D([], [], color=colours[v], label=v) for v in variants]
-    handles += [plt.Line2D([], [], color="k", linestyle=styles[s], marker="o" if s == 0 else "s", label=f"seed {s}")
+    variants = sorted({label.split(" ", 1)[0] for label in labels})
+    handles = [plt.Line2D([], [], color=plt.cm.tab10(i), label=v) for i, v in enumerate(variants)]  # plot_styles' order
+    handles += [plt.Line2D([], [], color="k", linestyle="none", marker=marker, label=lever or "no lever")
+                for lever, marker in sorted({(lab.partition(" ")[2], m) for lab, (_, m) in styles.items()})]
+    handles += [plt.Line2D([], [], color="k", linestyle=line_styles[s], marker="o",
+                           markerfacecolor="none" if s else "k", label=f"seed {s}")
                 for s in sorted({f["seed"] for f in fits})]
-    fig.legend(handles=handles, loc="lower right", fontsize=8)
-    fig.suptitle("Equal training time (compilation, evaluations and checkpoints left out), finest LOD", fontsize=10)
+    fig.legend(handles=handles, loc="lower right", fontsize=8, ncol=2)
+    fig.suptitle("Equal training time (compilation, evaluations and checkpoints left out), finest LOD; colour: "
+                 "variant, marker: lever", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
 

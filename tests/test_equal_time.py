@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from equal_time import (SUMMARY_KEYS, averaged_pairs, averaged_table, fit_from_json, fit_from_log, load_fits,  # noqa: E402
-                        printed_metrics, rule_table, table, wobble)
+from equal_time import (LEVER_MARKERS, SUMMARY_KEYS, averaged_pairs, averaged_table, fit_from_json,  # noqa: E402
+                        fit_from_log, load_fits, plot_styles, printed_metrics, rule_table, table, wobble)
 
 RUNS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_runs"
 # run27's no_precond came back whole: its JSON is the reference for what the printed lines and log give.
@@ -175,3 +175,19 @@ def test_a_lever_inert_on_the_other_variant_is_compared_with_its_plain_fits():
     lines = [line for line in rule_table(fits).splitlines() if line.startswith("| ") and "min" in line]
     assert [line.split(" | ")[0] for line in lines] == ["| -", "| ramp 3000 (no_precond plain: inert there)"]
     assert lines[1].endswith("| novel_view | 32.50 (1) | 31.20 (2) | +1.300 | pig beyond |")
+
+
+def test_the_figure_gives_every_fit_label_its_own_look_and_a_lever_its_variants_colour():
+    """The study's labels (17 by run37, past tab10's 10 colours, which once drew seven of them alike)."""
+    labels = sorted({f["variant"] for f in load_fits(RUNS / "equal_time.yaml")})
+    assert len(labels) > 10
+    styles = plot_styles(labels)
+    assert len(set(styles.values())) == len(labels)
+    for label in labels:
+        variant, _, lever = label.partition(" ")
+        if lever and variant in styles:
+            assert styles[label][0] == styles[variant][0] and styles[label][1] != styles[variant][1]
+    same_lever = [styles[label][1] for label in labels if label.endswith(" anchor warm-up 1500")]
+    assert len(same_lever) == 2 and len(set(same_lever)) == 1
+    with pytest.raises(ValueError, match="levers"):
+        plot_styles(["pig"] + [f"pig lever {i}" for i in range(len(LEVER_MARKERS))])
