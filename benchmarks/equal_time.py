@@ -211,6 +211,13 @@ def table(fits: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def mean_and_range(values: list[float]) -> str:
+    """A rule cell: the mean and how many fits, with their max - min where there are several (a lever's own range,
+    to read beside the rule's spread)."""
+    spread = f", range {max(values) - min(values):.2f}" if len(values) > 1 else ""
+    return f"{np.mean(values):.2f} ({len(values)}{spread})"
+
+
 def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond") -> str:
     """Issue 38's rule, where both variants have fits: the mean final novel-view and novel-pose PSNR of `leader` and
     `other` per seed and budget, their difference, and whether it is beyond the spread, the larger of the two
@@ -235,7 +242,8 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
     lines = ["", f"Issue 38's rule: `{leader}` against `{other}`, beyond the spread (the larger of the two variants' "
              f"max - min over the seed-0 5-minute replicates: novel view {spreads['novel_view']:.3f} dB, novel pose "
              f"{spreads['novel_pose']:.3f} dB)", "",
-             f"| lever | seed | budget | split | {leader} dB (fits) | {other} dB (fits) | difference dB | verdict |",
+             f"| lever | seed | budget | split | {leader} dB (fits, range) | {other} dB (fits, range) | difference dB "
+             "| verdict |",
              "|---|---|---|---|---|---|---|---|"]
     for lever in levers:
         partner = other if lever in inert else other + lever
@@ -252,8 +260,8 @@ def rule_table(fits: list[dict], leader: str = "pig", other: str = "no_precond")
                     verdict = f"{leader if difference > 0 else other} beyond"
                 else:
                     verdict = "within the spread"
-                lines.append(f"| {name} | {seed} | {budget / 60:g} min | {split} | {np.mean(mine):.2f} "
-                             f"({len(mine)}) | {np.mean(theirs):.2f} ({len(theirs)}) | {difference:+.3f} | {verdict} |")
+                lines.append(f"| {name} | {seed} | {budget / 60:g} min | {split} | {mean_and_range(mine)} | "
+                             f"{mean_and_range(theirs)} | {difference:+.3f} | {verdict} |")
     return "\n".join(lines)
 
 
