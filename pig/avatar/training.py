@@ -387,10 +387,10 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     lpips, lpips_record = lpips_term(fit_cfg, device)
     loss_terms = {"lpips": lpips_record}
     # Delayed and ramped grid preconditioning: the grid's lambdas are grid_lambda_scale(i) of the preset's during
-    # iteration i (plain steps before `grid_delay`, then the ramp's stages). A checkpoint stores the grid under the
-    # lambdas of the iteration before it; the final avatar.pt always under the preset's.
-    scheduled = precond_cfg.form != "none" and (precond_cfg.grid_delay > 0 or precond_cfg.grid_ramp > 0)
-    lambda_scale = precond_cfg.grid_lambda_scale if scheduled else lambda iteration: 1.0
+    # iteration i (plain steps before `grid_delay`, then the ramp's stages; 1 throughout without either, and form
+    # 'none' has no lambdas to schedule). A checkpoint stores the grid under the lambdas of the iteration before it;
+    # the final avatar.pt always under the preset's.
+    lambda_scale = precond_cfg.grid_lambda_scale if precond_cfg.form != "none" else lambda iteration: 1.0
     grid_lambdas = precond_cfg.grid_lambdas(len(model.grid.levels))
     scaled_lambdas = lambda scale: [scale * lam for lam in grid_lambdas]
     grid_scale = lambda_scale(0)
