@@ -19,12 +19,15 @@ the device synchronised around each (`breakdown`): decoding ground truth and ren
 host-to-device copies (float32 from pageable memory as the old stage did, uint8 from page-locked as now), PSNR,
 SSIM, LPIPS-VGG (pair, and the render side against cached ground-truth taps) and the FID network, in ms per view;
 with `--lpips-precision` / `--fid-precision` / `--channels-last` (passed to the evaluate stage's preset too) also
-the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views.
+the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views; on CUDA also
+that arithmetic's LPIPS rows with cuDNN's algorithms timed (evaluate.cudnn_autotune, which `--cudnn-autotune` sets
+for the stage).
 
 `--render-breakdown N` times each part of a render second alone on N novel-pose frames (after one warm-up frame),
 through the render stage's own calls in its order, the device synchronised around each (`render_breakdown`): the
 avatar's pose and decode per frame and LOD, the rasterization of every camera of a frame (one call per image size,
-as the stage batches them), each view's uint8 conversion and device-to-host copy, its encoding on one thread
+as the stage batches them), the uint8 conversion and device-to-host copy of a camera group's views at once (the
+stage's) and, as the baseline, of each view alone (`.cpu()` into a fresh array), each view's encoding on one thread
 (evaluate.render_codec) and the chunk writes; in ms per view (a view: one camera at one frame and LOD) and, for the
 per-frame parts, ms per frame at that LOD; then the stage's device and host (encoding) time per view and the
 views/s bound they imply with evaluate.encode_workers encoding threads.
@@ -260,7 +263,7 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     from pig.metrics.lpips import LPIPS
     from pig.metrics.psnr import psnr
     from pig.metrics.ssim import ssim_map
-    from pig.stages.evaluate import EvaluateConfig, view_batches
+    from pig.stages.evaluate import EvaluateConfig, cudnn_autotune, view_batches
 
     cfg = load_section(load_preset(str(preset)), "evaluate", EvaluateConfig)
     dev = torch.device(device)
@@ -309,6 +312,14 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
                 timed(fid_row, lambda: inception_low(x))
                 lpips_gap = max(lpips_gap, (low - lpips.distance(x, reference)).abs().max().item())
                 del low_reference
+            if dev.type == "cuda":  # the preset's LPIPS again with cuDNN's algorithms timed (its first batch: untimed)
+                preset_lpips = lpips_low if lowered else lpips
+                with cudnn_autotune(True):
+                    tuned_reference = timed(f"LPIPS-{cfg.lpips_net} truth taps ({arithmetic}, cuDNN autotuned)",
+                                            lambda: preset_lpips.reference(y))
+                    timed(f"LPIPS-{cfg.lpips_net} render vs taps ({arithmetic}, cuDNN autotuned)",
+                          lambda: preset_lpips.distance(x, tuned_reference))
+                del tuned_reference
         del reference
         if b == 0:
             times.clear()
@@ -337,12 +348,18 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
                   + ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
                   + (1 + 1 / lods) * ms["FID Inception, one image set"])
     paths = [("old", old_host, old_device), ("new", new_host, new_device)]
+    lpips_f32 = ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
+    lpips_preset = lpips_f32
     if lowered:  # the same pass with the networks' rows in the preset's arithmetic
-        lpips_f32 = ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
-        lpips_low = (ms[f"LPIPS-{net} render vs taps ({arithmetic})"]
-                     + ms[f"LPIPS-{net} truth taps ({arithmetic})"] / lods)
+        lpips_preset = (ms[f"LPIPS-{net} render vs taps ({arithmetic})"]
+                        + ms[f"LPIPS-{net} truth taps ({arithmetic})"] / lods)
         fid_change = (1 + 1 / lods) * (ms[fid_row] - ms["FID Inception, one image set"])
-        paths.append((f"new in {arithmetic}", new_host, new_device - lpips_f32 + lpips_low + fid_change))
+        paths.append((f"new in {arithmetic}", new_host, new_device - lpips_f32 + lpips_preset + fid_change))
+    tuned = f"({arithmetic}, cuDNN autotuned)"
+    if f"LPIPS-{net} truth taps {tuned}" in ms:  # the preset's path with its LPIPS rows autotuned
+        lpips_tuned = ms[f"LPIPS-{net} render vs taps {tuned}"] + ms[f"LPIPS-{net} truth taps {tuned}"] / lods
+        paths.append((f"new in {arithmetic}, cuDNN autotuned", new_host,
+                      paths[-1][2] - lpips_preset + lpips_tuned))
     for name, host, on_device in paths:
         print(f"{name}, per view score at {lods} LODs: host {host:.2f} ms on one thread "
               f"({host / cfg.encode_workers:.2f} ms on {cfg.encode_workers}), device {on_device:.2f} ms")
@@ -356,7 +373,8 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
     """Milliseconds per view of each part of a render second, each timed alone on `frames` frames of the split (after
     one warm-up frame), the device synchronised around each, through the render stage's own calls in its order
     (every LOD of a frame, then the next frame): the avatar's pose and decode per frame and LOD, the rasterization
-    of every camera (one call per image size), each view's uint8 conversion and copy to the host, its encoding
+    of every camera (one call per image size), the uint8 conversion and copy to the host of a group's views at once
+    (the stage's) and of each view alone (the baseline, left out of the stage's sum), each view's encoding
     (evaluate.render_codec, one thread) and the chunks' writes (one per LOD and camera, of the timed frames, in a
     temporary folder under `scratch`). A view is one camera at one frame and LOD, as the stage's views/s counts.
 
@@ -385,7 +403,8 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
 
     pose_row = {lod: f"pose + decode avatar, lod{lod}" for lod in levels}
     raster_row = {lod: f"rasterize {len(cameras)} cameras, lod{lod}" for lod in levels}
-    track_row, copy_row = "splat track to host", "to uint8 + copy to host"
+    track_row, copy_row = "splat track to host", "to uint8 + copy to host, a camera group at once"
+    copy_each_row = "to uint8 + copy to host, each view (old)"
     encode_row, write_row = f"encode {cfg.render_codec} (1 thread)", f"chunk write ({len(timed_frames)} frames)"
     streams: dict[tuple[int, str], list[np.ndarray]] = {}
     last: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}
@@ -396,12 +415,15 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
                 timed(track_row, lambda: (gaussians[0].cpu().numpy(), gaussians[3].cpu().numpy()))
             views = timed(raster_row[lod], lambda: list(renderer.render(frame, lod, gaussians=gaussians)))
             for cam, result, c in views:
-                image = timed(copy_row, lambda: _to_u8(result.color[c]))
+                if c == 0:
+                    images = timed(copy_row, lambda: _to_u8(result.color))
+                timed(copy_each_row, lambda: (result.color[c].clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy())
+                image = images[c]
                 stream = timed(encode_row, lambda: encode_image(image, cfg.render_codec))
                 if frame in timed_frames:
                     streams.setdefault((lod, cam), []).append(stream)
                     last[(lod, cam)] = image, stream
-            del views, gaussians
+            del views, gaussians, images
         if i == 0 and len(chosen) > 1:
             times.clear()
     with tempfile.TemporaryDirectory(dir=scratch, prefix=".render-breakdown-") as folder:
@@ -415,7 +437,7 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
     # Views each row was timed over: the per-LOD rows over their LOD's views, the others over every LOD's.
     views_of = {name: n * c * (1 if name in pose_row.values() or name in raster_row.values() else lods)
                 for name in times}
-    order = [*pose_row.values(), *raster_row.values(), track_row, copy_row, encode_row, write_row]
+    order = [*pose_row.values(), *raster_row.values(), track_row, copy_row, copy_each_row, encode_row, write_row]
     rows = []
     for name in [name for name in order if name in times]:
         values = times[name]
@@ -423,7 +445,8 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
         if name in per_frame:
             row["ms_per_frame"] = 1000 * sum(values) / len(values)
         rows.append(row)
-    device_ms = 1000 * sum(sum(v) for k, v in times.items() if k not in (encode_row, write_row)) / (n * c * lods)
+    device_ms = 1000 * sum(sum(v) for k, v in times.items()
+                           if k not in (encode_row, write_row, copy_each_row)) / (n * c * lods)
     host_ms = 1000 * (sum(times[encode_row]) + sum(times[write_row])) / (n * c * lods)
     workers = cfg.encode_workers
     bound = 1000 / max(device_ms, host_ms / workers)
@@ -465,6 +488,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fid-precision", choices=["float32", "float16", "bfloat16"], default=None,
                         help="evaluate.fid_precision (preset's)")
     parser.add_argument("--channels-last", action="store_true", help="evaluate.channels_last: true")
+    parser.add_argument("--cudnn-autotune", action="store_true", help="evaluate.cudnn_autotune: true")
     parser.add_argument("--codec-sample", type=int, default=0,
                         help="also time every codec on this many rendered novel-pose views (one thread)")
     parser.add_argument("--upscale", type=int, default=1,
@@ -491,7 +515,8 @@ def main(argv: list[str] | None = None) -> int:
                                               ("batch_size", args.batch_size),
                                               ("lpips_precision", args.lpips_precision),
                                               ("fid_precision", args.fid_precision),
-                                              ("channels_last", args.channels_last or None)) if value is not None}
+                                              ("channels_last", args.channels_last or None),
+                                              ("cudnn_autotune", args.cudnn_autotune or None)) if value is not None}
     preset = write_preset(args.workdir, args.preset, args.iterations, args.device, evaluate)
     variant = args.workdir / f"{capture.name}_{args.preset}_{args.iterations}" / "pig"
     if not (variant / "avatar.pt").is_file():

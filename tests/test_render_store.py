@@ -69,6 +69,12 @@ def test_quantisation_matches_the_png_writer(rng):
     colour[0, :4, 0] = torch.tensor([0.5 / 255, 1.5 / 255, 2.5 / 255, 254.5 / 255])  # ties round half to even
     expected = np.round(np.clip(colour.numpy(), 0, 1) * 255).astype(np.uint8)  # write_png's rule
     np.testing.assert_array_equal(render_stage._to_u8(colour), expected)
+    # A camera group's views at once (the stage's call) give each view what it gives alone.
+    group = torch.stack([colour, colour.flip(0), 1 - colour])
+    converted = render_stage._to_u8(group)
+    assert converted.shape == (3, 9, 11, 3) and converted.dtype == np.uint8
+    for view in range(3):
+        np.testing.assert_array_equal(converted[view], render_stage._to_u8(group[view]))
 
 
 def test_a_cut_short_or_foreign_chunk_is_refused_by_name(tmp_path, rng):
