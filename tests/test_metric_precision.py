@@ -10,7 +10,7 @@ from pig.config import ConfigError, load_section
 from pig.data.capture import Capture
 from pig.data.render_store import ChunkEncoder, chunk_path, write_manifest
 from pig.metrics.fid import InceptionFeatures
-from pig.metrics.lpips import LPIPS, _unit
+from pig.metrics.lpips import LPIPS, _channel_norm, _unit
 from pig.stages.evaluate import EvaluateConfig, evaluate_levels, precision_note
 
 
@@ -71,6 +71,21 @@ def test_lpips_float32_is_the_plain_layer_stack_and_lower_precisions_run_in_thei
         torch.testing.assert_close(values, reference, rtol=0, atol=1e-3)  # issue 39's LPIPS bound
     with pytest.raises(ValueError, match="precision must be one of"):
         LPIPS("vgg", weights="random", precision="float8")
+
+
+def test_half_precision_taps_are_normalised_in_float32_without_overflow():
+    generator = torch.Generator().manual_seed(0)
+    # Squares summed over 512 channels reach ~1.5e7: past float16's largest value (65504) had they been summed in it.
+    values = torch.rand((2, 512, 3, 4), generator=generator, dtype=torch.float64) * 300
+    values[0, :, 0, 0] = 0  # a pixel every channel of which is zero: eps keeps the quotient finite
+    for dtype in (torch.float16, torch.bfloat16):
+        tap = values.to(dtype)
+        exact = tap.double().pow(2).sum(1, keepdim=True).sqrt() + 1e-10
+        norm, unit = _channel_norm(tap), _unit(tap)
+        assert norm.dtype == unit.dtype == torch.float32 and torch.isfinite(unit).all()
+        torch.testing.assert_close(norm.double(), exact, rtol=1e-6, atol=0)
+        torch.testing.assert_close(unit.double(), tap.double() / exact, rtol=1e-6, atol=0)
+        assert unit[0, :, 0, 0].abs().max() == 0
 
 
 def test_inception_features_in_bfloat16_are_float32_and_close(tmp_path, rng):

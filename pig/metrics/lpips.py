@@ -9,7 +9,7 @@ the loss term where the weights are absent.
 
 `LPIPS.forward` is the float32 reference: the evaluation scores with it, and its parity tests hold to it. The
 evaluation may run the backbone in float16 or bfloat16 and channels-last instead (`precision`, `channels_last`;
-pig.metrics.precision), the taps widened to float32 before the distance.
+pig.metrics.precision), each tap read in that arithmetic by a distance computed in float32.
 `TrainingLPIPS` wraps it for the loss with the speed levers of the fit (bf16 backbone and head, compiled).
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import Literal
 import torch
 import torch.nn as nn
 
-from pig.metrics.precision import check_precision, network_arithmetic, widened
+from pig.metrics.precision import check_precision, network_arithmetic
 from pig.metrics.weights import (
     LPIPS_LINEAR_FILES,
     TORCHVISION_FILES,
@@ -75,7 +75,7 @@ class LPIPS(nn.Module):
     `backbone_weights` / `linear_weights` name the files directly, otherwise they are looked up
     in the torch hub cache (and the lpips package folder for the linear layers). `weights="random"` looks up
     nothing and initialises both from `seed` (see `_initialise`). `precision` (float32, float16, bfloat16): the
-    arithmetic of the backbone (autocast), its taps widened to float32 for the distance; `channels_last`: the
+    arithmetic of the backbone (autocast), its taps kept in it and the distance in float32; `channels_last`: the
     backbone's weights and inputs in channels-last memory format.
     """
 
@@ -138,15 +138,14 @@ class LPIPS(nn.Module):
         h = ((2 * images - 1) - self.shift) / self.scale
         if self.channels_last:
             h = h.contiguous(memory_format=torch.channels_last)
-        # Below float32 the unit normalisation would overflow float16 (a sum of squares over up to 512 channels) and
-        # lose bfloat16's few digits: each tap is widened to float32 as it is taken.
-        widen = self.precision != "float32"
+        # A float16 or bfloat16 tap stays so: `_channel_norm` sums its squares in float32 (in float16 the sum over
+        # up to 512 channels would overflow) and the quotients are float32, read off the tap without a widened copy.
         taps = []
         with network_arithmetic(h.device.type, self.precision):
             for index, layer in enumerate(self.features):
                 h = layer(h)
                 if index in self.taps:
-                    taps.append(widened(h) if widen else h)
+                    taps.append(h)
                     if len(taps) == len(self.taps):
                         break
         return taps
@@ -170,8 +169,9 @@ class LPIPS(nn.Module):
         for fx, ny, lin in zip(self._activations(x), reference, self.lins):
             if fx.shape != ny.shape:
                 raise ValueError(f"LPIPS: images of {tuple(x.shape)} against reference taps of {tuple(ny.shape)}")
-            # Weight the squared difference of the unit features, average spatially.
-            total = total + lin((_unit(fx) - ny).pow(2)).mean(dim=(1, 2, 3))
+            # Weight the squared difference of the unit features, average spatially; the difference in one pass
+            # over the tap (ny - fx / |fx|).
+            total = total + lin(torch.addcdiv(ny, fx, _channel_norm(fx), value=-1).square()).mean(dim=(1, 2, 3))
         return total
 
     def _check(self, x: torch.Tensor, y: torch.Tensor) -> None:
@@ -182,9 +182,18 @@ class LPIPS(nn.Module):
                              f"found {x.shape[3]}x{x.shape[2]}")
 
 
+def _channel_norm(features: torch.Tensor) -> torch.Tensor:
+    """(B, 1, h, w) Euclidean norm along channels plus the lpips package's eps, in float32 or wider."""
+    if features.dtype in (torch.float16, torch.bfloat16):
+        # Read as it is (a CUDA reduction casts as it reads), not copied wider first.
+        return torch.linalg.vector_norm(features, dim=1, keepdim=True, dtype=torch.float32) + 1e-10
+    # The lpips package's form: with vector_norm a CPU's reference taps took 1.6x as long (benchmarks/NOTES.md).
+    return features.pow(2).sum(1, keepdim=True).sqrt() + 1e-10
+
+
 def _unit(features: torch.Tensor) -> torch.Tensor:
-    """Features unit-normalised along channels (eps as the lpips package)."""
-    return features / (features.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+    """Features unit-normalised along channels (eps as the lpips package), in float32 or wider."""
+    return features / _channel_norm(features)
 
 
 def head(fx: torch.Tensor, fy: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

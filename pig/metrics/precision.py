@@ -1,5 +1,5 @@
 """The arithmetic of the evaluation's metric networks (LPIPS's backbone, FID's Inception): `float32`, the reference,
-or `float16` / `bfloat16` under autocast, the features then widened to float32 before any distance or statistic.
+or `float16` / `bfloat16` under autocast, every distance and statistic of the features in float32.
 
 Issue 39 allows the lower precisions only within its parity bounds against a float32 run of the same views
 (benchmarks/NOTES.md, "Lower-precision metric networks"); PSNR and SSIM never leave float32.
