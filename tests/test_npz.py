@@ -99,3 +99,47 @@ def test_body_model_with_a_sparse_pickled_regressor_loads_and_code_is_never_run(
         else:
             BodyModel.from_file(path)
         assert not marker.exists()
+
+
+def test_headers_are_parsed_one_thread_at_a_time(tmp_path, monkeypatch):
+    # CPython 3.11's AST construction keeps its depth per interpreter: two threads parsing .npy headers at once can
+    # fail (python/cpython#106905). Each parse here sleeps, so threads that were not kept apart would overlap.
+    import ast
+    import threading
+    import time
+
+    from pig.body.npz import read_npz
+
+    paths = []
+    for i in range(4):
+        paths.append(tmp_path / f"a{i}.npz")
+        np.savez(paths[-1], x=np.arange(6.0).reshape(2, 3) + i, y=np.ones(2))
+    literal_eval, inside, most = ast.literal_eval, [0], [0]
+    guard = threading.Lock()
+
+    def slow_literal_eval(text):
+        with guard:
+            inside[0] += 1
+            most[0] = max(most[0], inside[0])
+        time.sleep(0.01)
+        try:
+            return literal_eval(text)
+        finally:
+            with guard:
+                inside[0] -= 1
+
+    monkeypatch.setattr(ast, "literal_eval", slow_literal_eval)
+    results = [None] * len(paths)
+
+    def read(i):
+        results[i] = read_npz(paths[i], ValueError, "a test archive")
+
+    threads = [threading.Thread(target=read, args=(i,)) for i in range(len(paths))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert most[0] == 1  # never two parses at once
+    for i, arrays in enumerate(results):  # and every archive read whole
+        np.testing.assert_array_equal(arrays["x"], np.arange(6.0).reshape(2, 3) + i)
+        np.testing.assert_array_equal(arrays["y"], np.ones(2))

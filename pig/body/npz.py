@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import math
 import pickle
+import threading
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -30,6 +31,11 @@ _NUMPY_GLOBALS = {("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multi
 _SPARSE_CLASSES = {f"{fmt}_{kind}" for fmt in ("csr", "csc", "coo") for kind in ("matrix", "array")}
 # Largest member read, decompressed: an SMPL-X model's largest array (posedirs, float64) is ~120 MB.
 MAX_MEMBER_BYTES = 1 << 30
+# numpy parses a .npy header with ast.literal_eval, whose AST construction in CPython 3.11 keeps its recursion depth
+# in the interpreter, not the thread: two decode threads parsing at once (the evaluate stage's chunk readers) can
+# fail with "SystemError: AST constructor recursion depth mismatch" (python/cpython#106905; seen here in an evaluate
+# pass). Headers are parsed one at a time.
+_HEADER_PARSE = threading.Lock()
 
 
 class _ArraysOnlyUnpickler(pickle.Unpickler):
@@ -105,7 +111,7 @@ def _member(archive: zipfile.ZipFile, name: str, pickled_ok: bool, path, error: 
             raise error(f"{path}: member '{key}' declares shape {shape} of {dtype}, expected {wanted}; not read")
         if not dtype.hasobject:
             _check_declared(info, member.tell(), shape, dtype, path, error, max_bytes)
-            with archive.open(name) as again:  # read_array reads the header itself
+            with archive.open(name) as again, _HEADER_PARSE:  # read_array parses the header itself
                 try:
                     return np.lib.format.read_array(again, allow_pickle=False)
                 except ValueError as err:
@@ -151,7 +157,8 @@ def _header(member, key: str, path, error: type[Exception]) -> tuple[tuple[int, 
         version = np.lib.format.read_magic(member)
         if version not in _HEADER_READERS:
             raise ValueError(f"unsupported .npy format version {version}")
-        shape, fortran, dtype = _HEADER_READERS[version](member)
+        with _HEADER_PARSE:
+            shape, fortran, dtype = _HEADER_READERS[version](member)
     except ValueError as err:
         raise error(f"{path}: member '{key}' is not a valid .npy array ({err})") from None
     return tuple(shape), fortran, dtype
