@@ -194,3 +194,26 @@ def test_cudnn_autotune_holds_while_the_networks_score_and_is_restored(tmp_path,
             seen.clear()
     finally:
         torch.backends.cudnn.benchmark = before
+
+
+def test_the_evaluate_pass_reads_the_device_only_after_its_last_batch(tmp_path, rng):
+    # A host synchronisation per batch would stall a GPU pass at every batch; all of them come after the loop, so
+    # twice the batches make the same synchronisations (pig.host_syncs counts them on any device).
+    from test_metrics import _TinyInception
+
+    from pig.host_syncs import HostSyncs
+
+    torch.manual_seed(0)
+    torch.jit.script(_TinyInception()).save(str(tmp_path / "inception.pt"))
+    lpips, inception = LPIPS("alex", weights="random"), InceptionFeatures(tmp_path / "inception.pt")
+    counts = []
+    for views in (4, 8):
+        truths = smooth_images(rng, views, 32, 48)
+        capture_dir = capture_of(tmp_path / f"v{views}", rng, truths)
+        levels = chunked_levels(tmp_path / f"v{views}" / "chunked", truths,
+                                {0: render_like(truths, rng, 0.8), 1: render_like(truths, rng, 2.0)})
+        with HostSyncs() as syncs:
+            evaluate_levels(Capture.load(capture_dir, cache_mb=0), "novel_view", levels,
+                            EvaluateConfig(batch_size=2, encode_workers=2), lpips, inception, torch.device("cpu"))
+        counts.append(syncs.by_phase_op())
+    assert counts[0] == counts[1] and sum(counts[0].values()) > 0
