@@ -403,8 +403,8 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
 
     pose_row = {lod: f"pose + decode avatar, lod{lod}" for lod in levels}
     raster_row = {lod: f"rasterize {len(cameras)} cameras, lod{lod}" for lod in levels}
-    track_row, copy_row = "splat track to host", "to uint8 + copy to host, a camera group at once"
-    copy_each_row = "to uint8 + copy to host, each view (old)"
+    track_row, copy_row = "splat track to host", "to uint8 + copy to host, per group"
+    copy_each_row = "to uint8 + copy to host, per view (old)"
     encode_row, write_row = f"encode {cfg.render_codec} (1 thread)", f"chunk write ({len(timed_frames)} frames)"
     streams: dict[tuple[int, str], list[np.ndarray]] = {}
     last: dict[tuple[int, str], tuple[np.ndarray, np.ndarray]] = {}

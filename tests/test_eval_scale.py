@@ -39,7 +39,7 @@ def test_render_breakdown_rasterizes_and_encodes_what_the_stage_stores(tiny_fit,
     ms = {row["part"]: row["ms_per_view"] for row in rows if "ms_per_view" in row}
     per_lod = [name for lod in levels for name in
                (f"pose + decode avatar, lod{lod}", f"rasterize {len(cameras)} cameras, lod{lod}")]
-    group_copy, each_copy = "to uint8 + copy to host, a camera group at once", "to uint8 + copy to host, each view (old)"
+    group_copy, each_copy = "to uint8 + copy to host, per group", "to uint8 + copy to host, per view (old)"
     per_view = [group_copy, each_copy, "encode png (1 thread)", "chunk write (2 frames)"]
     assert set(per_lod + per_view) <= set(ms)
     assert all(value > 0 for value in ms.values())
