@@ -319,8 +319,8 @@ def plot(fits: list[dict], path: Path) -> None:
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
-    variants = sorted({label.split(" ", 1)[0] for label in labels})
-    handles = [plt.Line2D([], [], color=plt.cm.tab10(i), label=v) for i, v in enumerate(variants)]  # plot_styles' order
+    colours = {label.split(" ", 1)[0]: colour for label, (colour, _) in styles.items()}
+    handles = [plt.Line2D([], [], color=plt.cm.tab10(colour), label=v) for v, colour in sorted(colours.items())]
     handles += [plt.Line2D([], [], color="k", linestyle="none", marker=marker, label=lever or "no lever")
                 for lever, marker in sorted({(lab.partition(" ")[2], m) for lab, (_, m) in styles.items()})]
     handles += [plt.Line2D([], [], color="k", linestyle=line_styles[s], marker="o",
