@@ -94,11 +94,13 @@ def close(actual: torch.Tensor | np.ndarray, expected: np.ndarray) -> float:
 
 def assert_moved(record, step, name: str, expected: np.ndarray, rtol: float) -> None:
     """x after `step` minus x0 is `expected` within `rtol` (relative norm); for the anchors, elementwise within rtol
-    plus one float32 spacing of x0 (their float32 metre-sized positions round a 1e-8..1e-5 m move)."""
+    of the largest move plus one float32 spacing of x0 (their float32 metre-sized positions round a 1e-8..1e-5 m
+    move). CG's stopping rule bounds the error against the whole vector, not each element: a move 500 times smaller
+    than the largest carried 4.8e-3 of its own size (3.5e-10 m)."""
     moved = (step["x"][name] - record.x0[name]).numpy()
     if name == "anchors":
         ulp = np.abs(np.spacing(record.x0[name].float().numpy())).astype(np.float64)
-        assert np.all(np.abs(moved - expected) <= np.abs(expected) * rtol + ulp)
+        assert np.all(np.abs(moved - expected) <= np.abs(expected).max() * rtol + ulp)
     else:
         assert close(moved, expected) < rtol
 

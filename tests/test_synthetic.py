@@ -119,6 +119,22 @@ def test_motion_bends_elbows_knees_and_spine(scene):
     assert np.abs(pose[:, [J["left_eye"], J["right_eye"]]]).max() == 0
 
 
+def test_motion_of_thuman4_length_never_shows_a_pose_twice():
+    """2500 frames at 30 fps (THuman4's 2000 + 500, 83 s): every frame is nearer its neighbours than any frame two
+    or more apart, so no two frames of a long capture share ground-truth pixels (round frequencies repeated every
+    20 s)."""
+    from pig.data.synthetic.motion import Motion
+
+    motion, times = Motion(SyntheticConfig().seed, 0.0), np.arange(2500) / 30
+    # Joint angles (rad) and the translation (m, x5: a 0.2 m shift reads like a 1 rad turn) as one vector a frame.
+    x = np.concatenate([motion.full_pose(times).reshape(len(times), -1), 5 * motion.transl(times)], axis=1)
+    steps = np.linalg.norm(np.diff(x, axis=0), axis=1)
+    squared = (x * x).sum(axis=1)
+    gaps = np.sqrt(np.maximum(squared[:, None] + squared[None] - 2 * x @ x.T, 0.0))
+    frame = np.arange(len(times))
+    gaps[np.abs(frame[:, None] - frame[None]) < 2] = np.inf
+    assert gaps.min() > steps.max() > 0
+
 def test_deterministic_per_seed(capture, tmp_path, cfg, scene):
     again = tmp_path / "again"
     assert generate.main(["--output", str(again), "--preset", "test", "--quiet"]) == 0

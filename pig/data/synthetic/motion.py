@@ -11,9 +11,17 @@ import numpy as np
 from pig.body.model import NUM_JOINTS, SMPLX_JOINT_NAMES
 
 J = {name: i for i, name in enumerate(SMPLX_JOINT_NAMES)}
+# The cycles' frequencies (mHz) share no period under 1000 s, so a capture of THuman4's length (2500 frames, 83 s)
+# never shows one pose twice: with round frequencies the motion repeated every 20 s, and its evaluation scored the
+# same ground-truth pixels more than once.
 STEP_HZ = 0.6  # leg and arm cycle
-TURN_HZ = 0.25  # slow turn of the whole body
-SWAY_HZ = 0.6  # lateral pelvis sway that drives the skirt
+TURN_HZ = 0.24  # slow turn of the whole body
+SWAY_HZ = 0.625  # lateral pelvis sway that drives the skirt
+SLOW_HZ = 0.309  # spine bend, shoulders, wrists
+HEAD_HZ = 0.188
+JAW_HZ = 0.686
+CURL_HZ = 0.494  # fingers
+DRIFT_HZ = 0.308  # forward-backward drift of the whole body
 
 
 class Motion:
@@ -32,7 +40,7 @@ class Motion:
     def _cycles(self, t: np.ndarray):
         step = 2 * np.pi * STEP_HZ * t + self.phase[0]
         turn = 2 * np.pi * TURN_HZ * t + self.phase[1]
-        slow = 2 * np.pi * 0.3 * t + self.phase[2]
+        slow = 2 * np.pi * SLOW_HZ * t + self.phase[2]
         return step, turn, slow
 
     def full_pose(self, t: np.ndarray) -> np.ndarray:
@@ -57,8 +65,8 @@ class Motion:
             set_(name, x=share * (0.2 + 0.2 * g[3] * np.sin(slow)), y=share * 0.25 * np.sin(step),
                  z=share * 0.15 * np.sin(step + 1.0))
         set_("neck", x=0.1 * np.sin(slow + 1.0), y=0.15 * np.sin(turn + 0.5))
-        set_("head", x=0.05, y=0.25 * g[4] * np.sin(2 * np.pi * 0.2 * t + self.phase[3]))
-        set_("jaw", x=0.12 + 0.08 * np.sin(2 * np.pi * 0.7 * t + self.phase[4]))
+        set_("head", x=0.05, y=0.25 * g[4] * np.sin(2 * np.pi * HEAD_HZ * t + self.phase[3]))
+        set_("jaw", x=0.12 + 0.08 * np.sin(2 * np.pi * JAW_HZ * t + self.phase[4]))
         # Arms come down from the T-pose (about z) and swing against the legs (about y); the
         # person's left arm points along +x, so its signs mirror the right arm's.
         for side, sign in (("left", 1.0), ("right", -1.0)):
@@ -68,7 +76,8 @@ class Motion:
             bend = 0.4 + 0.9 * g[6] * (0.5 + 0.5 * np.sin(step + 1.2 + (0.0 if side == "left" else np.pi)))
             set_(f"{side}_elbow", y=-sign * bend)
             set_(f"{side}_wrist", x=0.2 * np.sin(slow + 2.0), z=-sign * 0.15)
-            curl = 0.25 + 0.2 * g[7] * np.sin(2 * np.pi * 0.5 * t + self.phase[5] + (0.0 if side == "left" else 1.0))
+            curl_phase = self.phase[5] + (0.0 if side == "left" else 1.0)
+            curl = 0.25 + 0.2 * g[7] * np.sin(2 * np.pi * CURL_HZ * t + curl_phase)
             for finger in ("index", "middle", "ring", "pinky"):
                 for k in (1, 2, 3):
                     # The stand-in's palms face +z: curling towards the palm is a rotation about y.
@@ -84,5 +93,5 @@ class Motion:
         out = np.zeros((len(t), 3))
         out[:, 0] = 0.055 * self.gain[0] * np.sin(2 * np.pi * SWAY_HZ * t + self.phase[6])
         out[:, 1] = self.ground_offset - 0.03 * knee_mean - 0.015 * np.cos(2 * step)
-        out[:, 2] = 0.04 * np.sin(2 * np.pi * 0.3 * t + self.phase[7])
+        out[:, 2] = 0.04 * np.sin(2 * np.pi * DRIFT_HZ * t + self.phase[7])
         return out
