@@ -19,9 +19,7 @@ the device synchronised around each (`breakdown`): decoding ground truth and ren
 host-to-device copies (float32 from pageable memory as the old stage did, uint8 from page-locked as now), PSNR,
 SSIM, LPIPS-VGG (pair, and the render side against cached ground-truth taps) and the FID network, in ms per view;
 with `--lpips-precision` / `--fid-precision` / `--channels-last` (passed to the evaluate stage's preset too) also
-the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views; on CUDA also
-that arithmetic's LPIPS rows with cuDNN's algorithms timed (evaluate.cudnn_autotune, which `--cudnn-autotune` sets
-for the stage).
+the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views.
 
 `--render-breakdown N` times each part of a render second alone on N novel-pose frames (after one warm-up frame),
 through the render stage's own calls in its order, the device synchronised around each (`render_breakdown`): the
@@ -263,7 +261,7 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     from pig.metrics.lpips import LPIPS
     from pig.metrics.psnr import psnr
     from pig.metrics.ssim import ssim_map
-    from pig.stages.evaluate import EvaluateConfig, cudnn_autotune, view_batches
+    from pig.stages.evaluate import EvaluateConfig, view_batches
 
     cfg = load_section(load_preset(str(preset)), "evaluate", EvaluateConfig)
     dev = torch.device(device)
@@ -312,14 +310,6 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
                 timed(fid_row, lambda: inception_low(x))
                 lpips_gap = max(lpips_gap, (low - lpips.distance(x, reference)).abs().max().item())
                 del low_reference
-            if dev.type == "cuda":  # the preset's LPIPS again with cuDNN's algorithms timed (its first batch: untimed)
-                preset_lpips = lpips_low if lowered else lpips
-                with cudnn_autotune(True):
-                    tuned_reference = timed(f"LPIPS-{cfg.lpips_net} truth taps ({arithmetic}, cuDNN autotuned)",
-                                            lambda: preset_lpips.reference(y))
-                    timed(f"LPIPS-{cfg.lpips_net} render vs taps ({arithmetic}, cuDNN autotuned)",
-                          lambda: preset_lpips.distance(x, tuned_reference))
-                del tuned_reference
         del reference
         if b == 0:
             times.clear()
@@ -349,17 +339,11 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
                   + (1 + 1 / lods) * ms["FID Inception, one image set"])
     paths = [("old", old_host, old_device), ("new", new_host, new_device)]
     lpips_f32 = ms[f"LPIPS-{net} render vs taps (new: per LOD)"] + ms[f"LPIPS-{net} truth taps (new: once)"] / lods
-    lpips_preset = lpips_f32
     if lowered:  # the same pass with the networks' rows in the preset's arithmetic
         lpips_preset = (ms[f"LPIPS-{net} render vs taps ({arithmetic})"]
                         + ms[f"LPIPS-{net} truth taps ({arithmetic})"] / lods)
         fid_change = (1 + 1 / lods) * (ms[fid_row] - ms["FID Inception, one image set"])
         paths.append((f"new in {arithmetic}", new_host, new_device - lpips_f32 + lpips_preset + fid_change))
-    tuned = f"({arithmetic}, cuDNN autotuned)"
-    if f"LPIPS-{net} truth taps {tuned}" in ms:  # the preset's path with its LPIPS rows autotuned
-        lpips_tuned = ms[f"LPIPS-{net} render vs taps {tuned}"] + ms[f"LPIPS-{net} truth taps {tuned}"] / lods
-        paths.append((f"new in {arithmetic}, cuDNN autotuned", new_host,
-                      paths[-1][2] - lpips_preset + lpips_tuned))
     for name, host, on_device in paths:
         print(f"{name}, per view score at {lods} LODs: host {host:.2f} ms on one thread "
               f"({host / cfg.encode_workers:.2f} ms on {cfg.encode_workers}), device {on_device:.2f} ms")
@@ -462,7 +446,48 @@ def render_breakdown(capture_dir: Path, checkpoint: Path, preset: Path, split: s
              {"part": "render stage per view: host, one thread", "ms_per_view": host_ms},
              {"part": f"render stage per view: host on {workers} encode workers", "ms_per_view": host_ms / workers},
              {"part": "render stage bound", "views_per_s": bound}]
+    rows += frame_paths(renderer, capture, split, frames, dev)
     return rows, last
+
+
+def frame_paths(renderer, capture, split: str, frames: int, dev: torch.device) -> list[dict]:
+    """A frame's avatar at each LOD through the render stage's driver (on CUDA its captured frame graphs) against the
+    launched driver the stage used before, on `frames` frames of `split` and, if it is another, as many of the
+    novel-view split's (training frames, one camera each: most of a novel view's cost), each timed alone after one
+    warm-up frame (the capture), and the largest difference of their splats."""
+    from pig.avatar.driver import AvatarDriver
+
+    model = renderer.model
+    launched = AvatarDriver(model)
+    kinds = {name: [int(f) for f in capture.split[name]["frames"]][:frames + 1]
+             for name in dict.fromkeys([split, "novel_view"]) if name in capture.split}
+
+    def launched_frame(frame: int, lod: int):
+        if frame in model.frame_ids:
+            return launched.gaussians(lod, timestep=model.timestep_of_frame(frame))
+        pose = capture.params.select([renderer.row_of_frame[frame]])
+        return launched.gaussians(lod, pose.full_pose[0], pose.transl[0])
+
+    timed, rows, gap = PartTimer(dev), [], 0.0
+    print(f"\na frame's avatar, the stage's driver against the launched one (old): ms a frame, mean of {frames} "
+          f"frames after one warm-up")
+    print(f"{'LOD':<4} " + " ".join(f"{kind + ': stage':>18} {'launched':>9} {'ratio':>6}" for kind in kinds))
+    for lod in range(model.num_levels):
+        cells = []
+        for kind, picks in kinds.items():
+            for i, frame in enumerate(picks):
+                ours = [t.clone() for t in timed(f"{kind} {lod} stage {i > 0}", lambda: renderer.gaussians(frame, lod))]
+                theirs = timed(f"{kind} {lod} launched {i > 0}", lambda: launched_frame(frame, lod))
+                gap = max(gap, max(float((a - b.float()).abs().max()) for a, b in zip(ours, theirs)))
+            stage, old = (timed.times.get(f"{kind} {lod} {path} True", [float("nan")]) for path in ("stage", "launched"))
+            stage_ms, old_ms = 1000 * float(np.mean(stage)), 1000 * float(np.mean(old))
+            rows += [{"part": f"{kind} frame avatar, lod{lod}, stage", "ms_per_frame": stage_ms},
+                     {"part": f"{kind} frame avatar, lod{lod}, launched (old)", "ms_per_frame": old_ms}]
+            cells.append(f"{stage_ms:>18.2f} {old_ms:>9.2f} {stage_ms / old_ms:>6.3f}")
+        print(f"{lod:<4} " + " ".join(cells))
+    print(f"largest |splat attribute, stage - launched| over these frames: {gap:.2e}")
+    rows.append({"part": "frame avatar: largest difference, stage - launched", "difference": gap})
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -488,7 +513,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fid-precision", choices=["float32", "float16", "bfloat16"], default=None,
                         help="evaluate.fid_precision (preset's)")
     parser.add_argument("--channels-last", action="store_true", help="evaluate.channels_last: true")
-    parser.add_argument("--cudnn-autotune", action="store_true", help="evaluate.cudnn_autotune: true")
     parser.add_argument("--codec-sample", type=int, default=0,
                         help="also time every codec on this many rendered novel-pose views (one thread)")
     parser.add_argument("--upscale", type=int, default=1,
@@ -515,8 +539,7 @@ def main(argv: list[str] | None = None) -> int:
                                               ("batch_size", args.batch_size),
                                               ("lpips_precision", args.lpips_precision),
                                               ("fid_precision", args.fid_precision),
-                                              ("channels_last", args.channels_last or None),
-                                              ("cudnn_autotune", args.cudnn_autotune or None)) if value is not None}
+                                              ("channels_last", args.channels_last or None)) if value is not None}
     preset = write_preset(args.workdir, args.preset, args.iterations, args.device, evaluate)
     variant = args.workdir / f"{capture.name}_{args.preset}_{args.iterations}" / "pig"
     if not (variant / "avatar.pt").is_file():

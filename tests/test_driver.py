@@ -96,17 +96,40 @@ def test_real_time_frame_equals_the_per_pose_path(avatars, refine):
     assert driver.decoded_all(0).sh.shape[:2] == (model.num_timesteps, model.level_sizes[0])
 
 
-def test_real_time_frame_refuses_a_decoded_cache_over_its_budget(avatars):
+def test_real_time_frame_over_its_budget_decodes_its_timestep(avatars):
+    """Over the budget the frame decodes the nearest timestep itself: the per-pose path's splats, no stacked cache."""
     model = avatars[False]
     driver = AvatarDriver(model, frame_graph=True, decoded_budget_bytes=1000)
     need = driver.decoded_all_bytes(2)
     assert need == model.num_timesteps * model.level_sizes[2] * (3 + 4 + 3 + 1 + 3 * 4) * 4
-    with pytest.raises(ValueError, match=r"decoding all 3 timesteps at LOD 2 takes .* GiB, over decoded_budget_bytes"):
-        driver.posed_frame(2, model.pose_init[0].numpy())
-    # gaussians() falls back to the per-pose path over the budget
-    pose = model.pose_init[0].numpy()
-    for ours, theirs in zip(driver.gaussians(2, pose), AvatarDriver(model).gaussians(2, pose)):
-        assert torch.equal(ours, theirs)
+    assert not driver.frame_graph_fits(2)
+    pose = model.pose_init[2].numpy() + 0.05
+    splats, step = driver.posed_frame(2, pose, [0.1, 0.0, 0.2])
+    assert int(step) == model.nearest_timestep(torch.as_tensor(pose)) == 2
+    for ours, theirs in zip(splats, AvatarDriver(model).gaussians(2, pose, [0.1, 0.0, 0.2])):
+        torch.testing.assert_close(ours, theirs)
+    assert 2 not in driver._decoded_all
+
+
+@pytest.mark.parametrize("budget", [8 << 30, 0])
+@pytest.mark.parametrize("refine", [True, False])
+def test_timestep_frame_equals_the_per_timestep_path(avatars, refine, budget):
+    """A training timestep in its refined pose through the frame function (the novel-view split's frames), its
+    attributes gathered from every timestep decoded up front or, with no budget, decoded in the frame: the
+    per-timestep path's splats at every LOD and timestep (the first and the last included), and gaussians() with
+    only a timestep takes it."""
+    model = avatars[refine]
+    driver, plain = AvatarDriver(model, frame_graph=True, decoded_budget_bytes=budget), AvatarDriver(model)
+    for lod in range(model.num_levels):
+        for t in range(model.num_timesteps):
+            splats = driver.timestep_frame(lod, t)
+            for ours, theirs in zip(splats, plain.gaussians(lod, timestep=t)):
+                torch.testing.assert_close(ours, theirs)
+            for ours, theirs in zip(driver.gaussians(lod, timestep=t), splats):
+                assert torch.equal(ours, theirs)
+    assert sorted(driver._decoded_all) == ([] if budget == 0 else list(range(model.num_levels)))
+    with pytest.raises(ValueError, match=r"timestep must lie in 0\.\.2, got 3"):
+        driver.timestep_frame(0, model.num_timesteps)
 
 
 class _Counter:

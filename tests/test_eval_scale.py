@@ -66,4 +66,10 @@ def test_render_breakdown_rasterizes_and_encodes_what_the_stage_stores(tiny_fit,
         decoded = cv2.imdecode(np.frombuffer(stream.tobytes(), np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
         np.testing.assert_array_equal(decoded, image)
     assert any(image.max() > 0 for image, _ in last.values())  # the avatar is in view, not a black frame
+    # The stage's driver against the launched one: on the CPU the stage launches its frames, so the splats are equal.
+    frame_ms = {row["part"]: row["ms_per_frame"] for row in rows if "ms_per_frame" in row}
+    for lod in levels:
+        assert frame_ms[f"{SPLIT} frame avatar, lod{lod}, stage"] > 0
+        assert frame_ms[f"{SPLIT} frame avatar, lod{lod}, launched (old)"] > 0
+    assert next(row["difference"] for row in rows if "difference" in row) == 0.0
     assert not list(tmp_path.glob(".render-breakdown-*"))  # the chunk writes' scratch folder is gone

@@ -17,11 +17,15 @@ training timestep at the level are computed once and held stacked on the device 
 training timestep, so a frame is pose -> nearest timestep (an argmin on the device) -> posed body ->
 transport -> a gather of the decoded timestep -> Eqs. 10-11, with no host synchronisation. On CUDA that
 function is compiled and captured once per level as a CUDA graph: the frame's hundreds of small kernels
-(the 55-joint chain alone is 55 matrix products) then cost one launch.
+(the 55-joint chain alone is 55 matrix products) then cost one launch. Over the budget the frame decodes its
+timestep itself (the decoders inside the graph), and a training timestep in its refined pose (`timestep_frame`,
+the novel-view split's frames) is a frame of its own graph. `compile_frames=False` captures the frames as they are
+launched, without torch.compile: a render stage's few thousand frames then pay no compilation.
 """
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import fields
 
 import numpy as np
@@ -43,14 +47,15 @@ class AvatarDriver:
     """
 
     def __init__(self, model: AvatarModel, decoded_cache: int = 4, pose_cache: int = 4096, frame_graph: bool = False,
-                 decoded_budget_bytes: int = 8 << 30):
+                 decoded_budget_bytes: int = 8 << 30, compile_frames: bool = True):
         if decoded_cache < 0 or pose_cache < 0:
             raise ValueError(f"AvatarDriver: cache sizes must be >= 0, got decoded_cache={decoded_cache}, pose_cache={pose_cache}")
         self.model = model.eval()
         self.decoded_cache, self.pose_cache = decoded_cache, pose_cache
         self.frame_graph, self.decoded_budget_bytes = frame_graph, decoded_budget_bytes
+        self.compile_frames = compile_frames
         self._decoded_all: dict[int, DecodedAnchors] = {}  # lod -> outputs (T, n, ...) of every training timestep
-        self._frames: dict[tuple[int, bool], "_FrameGraph"] = {}
+        self._frames: dict[tuple[int, str], "_FrameGraph"] = {}  # (lod, "pose" | "pose+transl" | "timestep")
         self._train_rotations: torch.Tensor | None = None  # (T, 21, 3, 3) body-joint rotations of the training poses
         self._anchors: torch.Tensor | None = None
         self._features: dict[int, torch.Tensor] = {}  # lod -> z (n, d)
@@ -183,21 +188,50 @@ class AvatarDriver:
         return self._decoded_all[lod]
 
     def frame_graph_fits(self, lod: int) -> bool:
+        """Whether the decoded outputs of every timestep at `lod` fit the budget: frames then gather their timestep's
+        instead of decoding it."""
         return self.decoded_all_bytes(lod) <= self.decoded_budget_bytes
 
-    def _frame(self, lod: int, pose: torch.Tensor, transl: torch.Tensor | None) -> tuple[torch.Tensor, ...]:
-        """One pose-driven frame on the device: (means, quats, scales, opacities, sh) and the timestep (1,).
-        Every operation is a device kernel with static shapes, so the function can be captured as a graph."""
+    def _frame(self, lod: int, pose: torch.Tensor | None, transl: torch.Tensor | None,
+               step: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        """One frame on the device: (means, quats, scales, opacities, sh) and the timestep (1,). Pose-driven (`step`
+        None): `pose` (55, 3) and the training timestep nearest to it; else training timestep `step` (1,) in its
+        refined pose. The timestep's decoded attributes are a gather from `decoded_all` where it holds the level,
+        else decoded here. Every operation is a device kernel with static shapes, so the function can be captured
+        as a graph."""
         model = self.model
-        train_rotations, decoded_all = self._train_rotations, self._decoded_all[lod]
-        query = axis_angle_to_matrix(pose[BODY_SLICE])  # (21, 3, 3)
-        step = geodesic_distance(query[None], train_rotations).sum(-1).argmin()[None]  # ties -> earliest
+        if step is None:
+            query = axis_angle_to_matrix(pose[BODY_SLICE])  # (21, 3, 3)
+            step = geodesic_distance(query[None], self._train_rotations).sum(-1).argmin()[None]  # ties -> earliest
+            full_pose = pose[None]
+        else:
+            full_pose = self.refined()[1][step]
         shaped, joints_rest = self.rest_shapes()
         translation = model.transl[step] if transl is None else transl
-        decoded = DecodedAnchors(*(getattr(decoded_all, f.name)[step] for f in fields(DecodedAnchors)))
-        g = model.posed_splats(self.anchors(), lod, pose[None], None, None, translation, decoded, sync_free=True,
+        if lod in self._decoded_all:
+            decoded = DecodedAnchors(*(getattr(self._decoded_all[lod], f.name)[step] for f in fields(DecodedAnchors)))
+        else:
+            decoded = model.decode(self.features(lod), step, lod)
+        g = model.posed_splats(self.anchors(), lod, full_pose, None, None, translation, decoded, sync_free=True,
                                rest=(shaped[step], joints_rest[step]))
         return g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0], step
+
+    def _prepare_frames(self, lod: int) -> None:
+        """Fills the per-avatar and per-LOD caches that a frame reads, outside any graph: the frame only reads them."""
+        if self._train_rotations is None:
+            self._train_rotations = axis_angle_to_matrix(self.model.pose_init[:, BODY_SLICE])
+        self.refined()
+        self.features(lod)
+        self.rest_shapes()
+        if self.frame_graph_fits(lod):
+            self.decoded_all(lod)
+
+    def _graph(self, lod: int, kind: str, frame: Callable[[torch.Tensor], tuple[torch.Tensor, ...]], size: int,
+               dtype: torch.dtype) -> "_FrameGraph":
+        key = (lod, kind)
+        if key not in self._frames:
+            self._frames[key] = _FrameGraph(frame, size, dtype, self.device, self.compile_frames)
+        return self._frames[key]
 
     @torch.no_grad()
     def posed_frame(self, lod: int, pose, transl=None) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
@@ -205,26 +239,35 @@ class AvatarDriver:
         `gaussians(lod, pose, transl)`. On CUDA the tensors are a graph's outputs, overwritten by the next call
         at this level: consume (render) or clone them first."""
         self._check_lod(lod)
-        if not self.frame_graph_fits(lod):
-            raise ValueError(f"AvatarDriver: decoding all {self.model.num_timesteps} timesteps at LOD {lod} takes "
-                             f"{self.decoded_all_bytes(lod) / 2**30:.2f} GiB, over decoded_budget_bytes "
-                             f"({self.decoded_budget_bytes / 2**30:.2f} GiB); use gaussians() or raise the budget")
-        if self._train_rotations is None:
-            self._train_rotations = axis_angle_to_matrix(self.model.pose_init[:, BODY_SLICE])
-        self.rest_shapes()  # fills the per-avatar caches outside the graph: the frame only reads them
-        self.decoded_all(lod)
+        self._prepare_frames(lod)
         if self.device.type != "cuda":
             *splats, step = self._frame(lod, self._pose(pose), None if transl is None else self._transl(transl))
             return tuple(splats), step
         # Host inputs stay on the host until the graph's one asynchronous copy (_FrameGraph.run).
         query = self._pose(pose, keep_device=True)
-        translation = None if transl is None else self._transl(transl, keep_device=True)
-        key = (lod, translation is not None)
-        if key not in self._frames:
-            self._frames[key] = _FrameGraph(self._frame, lod, translation is not None, self.model.pose_init.dtype,
-                                            self.device)
-        *splats, step = self._frames[key].run(query, translation)
+        if transl is None:
+            graph = self._graph(lod, "pose", lambda inputs: self._frame(lod, inputs.view(55, 3), None),
+                                55 * 3, self.model.pose_init.dtype)
+            *splats, step = graph.run(query)
+        else:
+            graph = self._graph(lod, "pose+transl",
+                                lambda inputs: self._frame(lod, inputs[: 55 * 3].view(55, 3), inputs[55 * 3 :].view(1, 3)),
+                                55 * 3 + 3, self.model.pose_init.dtype)
+            *splats, step = graph.run(query, self._transl(transl, keep_device=True))
         return tuple(splats), step
+
+    @torch.no_grad()
+    def timestep_frame(self, lod: int, timestep: int) -> tuple[torch.Tensor, ...]:
+        """(means, quats, scales, opacities, sh) of training timestep `timestep` in its refined pose, equal to
+        `gaussians(lod, timestep=timestep)`: the frame-graph path of a training frame. On CUDA the tensors are a
+        graph's outputs, overwritten by the next call at this level: consume (render) or clone them first."""
+        self._check_lod(lod)
+        self._check_timestep(timestep)
+        self._prepare_frames(lod)
+        if self.device.type != "cuda":
+            return self._frame(lod, None, None, torch.tensor([int(timestep)], device=self.device))[:5]
+        graph = self._graph(lod, "timestep", lambda inputs: self._frame(lod, None, None, inputs), 1, torch.int64)
+        return graph.run(np.array([int(timestep)], dtype=np.int64))[:5]
 
     def gaussians(self, lod: int, pose=None, transl=None, timestep: int | None = None) -> tuple[torch.Tensor, ...]:
         """(means, quats, scales, opacities, sh) of one frame, as `AvatarModel.gaussians` returns them.
@@ -237,12 +280,13 @@ class AvatarDriver:
         if timestep is None:
             if pose is None:
                 raise ValueError("AvatarDriver.gaussians needs a timestep, a pose, or both")
-            if self.frame_graph and self.frame_graph_fits(lod):
+            if self.frame_graph:
                 return self.posed_frame(lod, pose, transl)[0]
             timestep = self.nearest_timestep(pose)
-        if not 0 <= int(timestep) < self.model.num_timesteps:
-            raise ValueError(f"timestep must lie in 0..{self.model.num_timesteps - 1}, got {timestep}")
+        self._check_timestep(timestep)
         timestep = int(timestep)
+        if self.frame_graph and pose is None and transl is None:
+            return self.timestep_frame(lod, timestep)
         centres, rotation = self.transport(lod, self.body(timestep, pose, transl))
         g = self.splats(centres, rotation, self.decoded(lod, timestep))
         return g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.sh[0]
@@ -257,6 +301,10 @@ class AvatarDriver:
     def _check_lod(self, lod: int) -> None:
         if not 0 <= lod < self.model.num_levels:
             raise ValueError(f"lod must lie in 0..{self.model.num_levels - 1}, got {lod}")
+
+    def _check_timestep(self, timestep: int) -> None:
+        if not 0 <= int(timestep) < self.model.num_timesteps:
+            raise ValueError(f"timestep must lie in 0..{self.model.num_timesteps - 1}, got {timestep}")
 
     def _pose(self, pose, keep_device: bool = False) -> torch.Tensor | np.ndarray:
         """A checked (55, 3) pose in the model's dtype on the model's device; with `keep_device` a tensor stays
@@ -283,36 +331,37 @@ class AvatarDriver:
 
 
 class _FrameGraph:
-    """A compiled frame function captured as a CUDA graph that reads the pose (and translation) from one static
-    device buffer. Host inputs reach it through a pinned staging buffer in one asynchronous copy: a frame costs
-    no blocking transfer and no copy kernel before the replay."""
+    """A frame function captured as a CUDA graph (compiled first, or as launched) that reads its inputs (a pose and
+    translation, or a timestep) from one static device buffer. Host inputs reach it through a pinned staging buffer
+    in one asynchronous copy: a frame costs no blocking transfer and no copy kernel before the replay."""
 
-    def __init__(self, frame, lod: int, with_transl: bool, dtype: torch.dtype, device: torch.device):
-        size = 55 * 3 + 3 * with_transl
+    def __init__(self, frame: Callable[[torch.Tensor], tuple[torch.Tensor, ...]], size: int, dtype: torch.dtype,
+                 device: torch.device, compile_frame: bool):
         self.inputs = torch.zeros(size, dtype=dtype, device=device)
         self.staging = torch.zeros(size, dtype=dtype, pin_memory=True)
         self.staged = torch.cuda.Event()  # the last copy out of `staging` is done once this has passed
         self.staged.record()
-        pose = self.inputs[: 55 * 3].view(55, 3)
-        transl = self.inputs[55 * 3 :].view(1, 3) if with_transl else None
-        compiled = torch.compile(frame, dynamic=False)
-        self.graph, self.outputs = capture(lambda: compiled(lod, pose, transl), device, warmups=2)
+        run = torch.compile(frame, dynamic=False) if compile_frame else frame
+        self.graph, self.outputs = capture(lambda: run(self.inputs), device, warmups=2)
 
-    def run(self, pose, transl) -> tuple[torch.Tensor, ...]:
-        """Replay on `pose` (55 x 3 values) and `transl` (3 or None): CUDA tensors, or host tensors or arrays."""
-        if torch.is_tensor(pose) and pose.is_cuda:
-            self._fill(self.inputs, pose, transl)
+    def run(self, *parts) -> tuple[torch.Tensor, ...]:
+        """Replay on `parts` (e.g. 55 x 3 pose values, then 3 translation values), written one after another into
+        the input buffer: CUDA tensors, or host tensors or arrays."""
+        if torch.is_tensor(parts[0]) and parts[0].is_cuda:
+            self._fill(self.inputs, parts)
         else:
             self.staged.synchronize()  # the previous frame's copy may still be reading the staging buffer
-            self._fill(self.staging.numpy(), pose, transl)
+            self._fill(self.staging.numpy(), parts)
             self.inputs.copy_(self.staging, non_blocking=True)
             self.staged.record()
         self.graph.replay()
         return self.outputs
 
     @staticmethod
-    def _fill(buffer, pose, transl) -> None:
-        """Write pose and translation into a device tensor (from CUDA tensors) or a host array."""
-        buffer[: 55 * 3] = pose.reshape(-1)
-        if transl is not None:
-            buffer[55 * 3 :] = transl.reshape(-1)
+    def _fill(buffer, parts) -> None:
+        """Write the parts' values, flattened, one after another into a device tensor or a host array."""
+        start = 0
+        for part in parts:
+            values = part.reshape(-1)
+            buffer[start : start + len(values)] = values
+            start += len(values)

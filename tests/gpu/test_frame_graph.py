@@ -60,3 +60,46 @@ def test_back_to_back_frames_read_their_own_pose(tmp_path):
     means = [graph.posed_frame(lod, pose)[0][0].clone() for pose in poses]  # clone: ordered on the stream, no sync
     for pose, ours in zip(poses, means):
         torch.testing.assert_close(ours, plain.gaussians(lod, pose)[0], rtol=2e-4, atol=2e-4)
+
+
+@pytest.mark.parametrize("compile_frames", [True, False])
+def test_captured_frames_that_decode_follow_their_timesteps(tmp_path, compile_frames):
+    """The render stage's frames (decoded_budget_bytes=0, captured as launched or compiled): a training timestep in
+    its refined pose and a pose-driven frame, each decoding its timestep inside the graph, replayed in an order that
+    revisits timesteps, against the launched per-timestep and per-pose paths."""
+    from pig.body.standin import write_standin
+
+    write_standin(tmp_path / "body_model.npz")
+    model = _avatar((tmp_path / "body_model.npz").read_bytes()).cuda()
+    graph = AvatarDriver(model, frame_graph=True, decoded_budget_bytes=0, compile_frames=compile_frames)
+    plain = AvatarDriver(model)
+    rng = np.random.default_rng(2)
+    train = model.pose_init.cpu().numpy()
+    tolerance = dict(rtol=2e-4, atol=2e-4)  # the rest-shape path and inductor's fusion: rounding-level differences
+    for lod in range(model.num_levels):
+        for t in (2, 0, 1, 2, 0):
+            for ours, theirs in zip(graph.timestep_frame(lod, t), plain.gaussians(lod, timestep=t)):
+                torch.testing.assert_close(ours, theirs, **tolerance)
+            pose = train[t] + rng.normal(scale=0.05, size=(55, 3))
+            splats, step = graph.posed_frame(lod, pose, [0.1, -0.2, 0.0])
+            assert int(step) == model.nearest_timestep(torch.as_tensor(pose))
+            for ours, theirs in zip(splats, plain.gaussians(lod, pose, [0.1, -0.2, 0.0])):
+                torch.testing.assert_close(ours, theirs, **tolerance)
+    assert not graph._decoded_all and len(graph._frames) == 2 * model.num_levels
+
+
+def test_back_to_back_timestep_frames_read_their_own_timestep(tmp_path):
+    """As test_back_to_back_frames_read_their_own_pose, for the int64 timestep staged into a training frame's graph."""
+    from pig.body.standin import write_standin
+
+    write_standin(tmp_path / "body_model.npz")
+    model = _avatar((tmp_path / "body_model.npz").read_bytes()).cuda()
+    graph = AvatarDriver(model, frame_graph=True, decoded_budget_bytes=0, compile_frames=False)
+    plain = AvatarDriver(model)
+    lod, steps = model.num_levels - 1, [1, 2, 0, 2, 1, 0]
+    graph.timestep_frame(lod, 0)  # capture outside the queued run
+    torch.cuda.synchronize()
+    torch.cuda._sleep(50_000_000)
+    means = [graph.timestep_frame(lod, t)[0].clone() for t in steps]
+    for t, ours in zip(steps, means):
+        torch.testing.assert_close(ours, plain.gaussians(lod, timestep=t)[0], rtol=2e-4, atol=2e-4)
