@@ -169,33 +169,6 @@ def test_precision_options_are_checked_and_noted():
         load_section({"evaluate": {"lpips_precision": "half"}}, "evaluate", EvaluateConfig)
 
 
-def test_cudnn_autotune_holds_while_the_networks_score_and_is_restored(tmp_path, rng, monkeypatch):
-    truths = smooth_images(rng, 3, 32, 48)
-    capture_dir = capture_of(tmp_path, rng, truths)
-    levels = chunked_levels(tmp_path / "chunked", truths, {0: render_like(truths, rng, 0.8)})
-    lpips = LPIPS("alex", weights="random")
-    seen = []
-    distance = LPIPS.distance
-
-    def recorded(self, *args, **kwargs):
-        seen.append(torch.backends.cudnn.benchmark)
-        return distance(self, *args, **kwargs)
-
-    monkeypatch.setattr(LPIPS, "distance", recorded)
-    before = torch.backends.cudnn.benchmark
-    try:
-        for outside, on in ((False, True), (True, False)):
-            torch.backends.cudnn.benchmark = outside
-            evaluate_levels(Capture.load(capture_dir, cache_mb=0), "novel_view", levels,
-                            EvaluateConfig(batch_size=2, encode_workers=1, cudnn_autotune=on), lpips, None,
-                            torch.device("cpu"))
-            assert len(seen) == 2 and set(seen) == {on}  # both batches scored under the option
-            assert torch.backends.cudnn.benchmark is outside
-            seen.clear()
-    finally:
-        torch.backends.cudnn.benchmark = before
-
-
 def test_the_evaluate_pass_reads_the_device_only_after_its_last_batch(tmp_path, rng):
     # A host synchronisation per batch would stall a GPU pass at every batch; all of them come after the loop, so
     # twice the batches make the same synchronisations (pig.host_syncs counts them on any device).

@@ -21,7 +21,6 @@ import math
 import re
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -70,9 +69,6 @@ class EvaluateConfig:
     lpips_precision: Literal["float32", "float16", "bfloat16"] = "float32"
     fid_precision: Literal["float32", "float16", "bfloat16"] = "float32"
     channels_last: bool = False  # both networks' weights and inputs in channels-last memory format
-    # cuDNN times its convolution algorithms once per input shape and keeps the fastest (torch.backends.cudnn.benchmark)
-    # while the networks score; its choice may differ from run to run, and so the values' last bits.
-    cudnn_autotune: bool = False
     batch_size: Annotated[int, Bounds(ge=1)] = 8
     device: str = "auto"  # "auto": CUDA when available
     timing_frames: Annotated[int, Bounds(ge=1)] = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
@@ -256,16 +252,6 @@ class BatchLoader:
         out[...] = image
 
 
-@contextmanager
-def cudnn_autotune(on: bool):
-    """torch.backends.cudnn.benchmark set to `on` inside, restored after."""
-    previous, torch.backends.cudnn.benchmark = torch.backends.cudnn.benchmark, on
-    try:
-        yield
-    finally:
-        torch.backends.cudnn.benchmark = previous
-
-
 def _unit_floats(images: torch.Tensor, device) -> torch.Tensor:
     """(B, H, W, 3) uint8 -> (B, 3, H, W) float32 in [0, 1] on `device`: the values read_png gives."""
     return (images.to(device, non_blocking=True).float() / 255).permute(0, 3, 1, 2)
@@ -293,7 +279,7 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
     in_flight: list = []  # one event per batch queued on a GPU: the host runs at most two batches ahead
     start, device_wait = time.perf_counter(), 0.0
     for loaded in progress_bar(loader, total=len(batches), desc=f"evaluate {split}", unit="batch"):
-        with torch.no_grad(), cudnn_autotune(cfg.cudnn_autotune):
+        with torch.no_grad():
             masks = loaded.masks.to(device, non_blocking=True)
             y = ((loaded.truths.to(device, non_blocking=True).float() / 255) * masks[..., None]).permute(0, 3, 1, 2)
             # LPIPS and FID see the protocol's crop; PSNR, SSIM and the regions the full frame.

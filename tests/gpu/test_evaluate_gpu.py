@@ -3,8 +3,8 @@
 Run on the GPU machine (skipped without CUDA). Two LODs of 12 views at 320 x 288, LPIPS-VGG and a stand-in
 Inception with random weights (their cost and numerics, not their meaning): per image PSNR within 1e-3 dB, SSIM
 within 1e-4, LPIPS within 1e-3, and each LOD's FID within 0.5 % (issue 39's bounds; cuDNN may pick TF32
-convolutions, which these bounds allow), with cuDNN's heuristic algorithms and with its timed ones
-(evaluate.cudnn_autotune)."""
+convolutions, which these bounds allow).
+"""
 import copy
 
 import numpy as np
@@ -44,20 +44,17 @@ def test_evaluate_on_the_gpu_matches_the_float32_cpu_run(tmp_path, rng):
     torch.manual_seed(0)
     torch.jit.script(_TinyInception()).save(str(tmp_path / "inception.pt"))
     levels = {level: tmp_path / "chunked" / f"lod{level}" for level in (0, 1)}
+    cfg = EvaluateConfig(batch_size=5, encode_workers=3)
     results = {}
-    # The CUDA pass twice: cuDNN's heuristics, and cuDNN timing its algorithms (evaluate.cudnn_autotune).
-    for name, device, autotune in (("cpu", "cpu", False), ("cuda", "cuda", False), ("cuda autotuned", "cuda", True)):
-        cfg = EvaluateConfig(batch_size=5, encode_workers=3, cudnn_autotune=autotune)
+    for device in ("cpu", "cuda"):
         lpips = copy.deepcopy(LPIPS("vgg", weights="random")).to(device)
         inception = InceptionFeatures(tmp_path / "inception.pt").to(device)
-        results[name] = evaluate_levels(Capture.load(capture_dir, cache_mb=0), "novel_view", levels, cfg, lpips,
-                                        inception, torch.device(device))
+        results[device] = evaluate_levels(Capture.load(capture_dir, cache_mb=0), "novel_view", levels, cfg, lpips,
+                                          inception, torch.device(device))
     for level in levels:
-        cpu, cpu_summary = results["cpu"][level]
-        for name in ("cuda", "cuda autotuned"):
-            gpu, gpu_summary = results[name][level]
-            assert cpu["frame"].tolist() == gpu["frame"].tolist() == list(range(frames))
-            np.testing.assert_allclose(gpu["psnr"], cpu["psnr"], rtol=0, atol=1e-3)
-            np.testing.assert_allclose(gpu["ssim"], cpu["ssim"], rtol=0, atol=1e-4)
-            np.testing.assert_allclose(gpu["lpips"], cpu["lpips"], rtol=0, atol=1e-3)
-            assert gpu_summary["fid"] == pytest.approx(cpu_summary["fid"], rel=5e-3) and cpu_summary["fid"] > 0
+        (cpu, cpu_summary), (gpu, gpu_summary) = results["cpu"][level], results["cuda"][level]
+        assert cpu["frame"].tolist() == gpu["frame"].tolist() == list(range(frames))
+        np.testing.assert_allclose(gpu["psnr"], cpu["psnr"], rtol=0, atol=1e-3)
+        np.testing.assert_allclose(gpu["ssim"], cpu["ssim"], rtol=0, atol=1e-4)
+        np.testing.assert_allclose(gpu["lpips"], cpu["lpips"], rtol=0, atol=1e-3)
+        assert gpu_summary["fid"] == pytest.approx(cpu_summary["fid"], rel=5e-3) and cpu_summary["fid"] > 0
