@@ -77,8 +77,8 @@ class SplitRenderer:
 
     def __init__(self, model, capture, cameras: list[str], device: torch.device, rasterizer: RasterizerConfig):
         self.model, self.capture, self.device, self.rasterizer = model, capture, device, rasterizer
-        # On CUDA each frame is one captured graph (decoders included) instead of hundreds of launches: run41 timed a
-        # novel-view frame, one view, at 19 ms of mostly launching. Captured as launched (no compilation to wait
+        # On CUDA each frame is one captured graph (decoders included) instead of hundreds of launches: in run42 a
+        # novel-view frame (one view) took ~19 ms, mostly launching. Captured as launched (no compilation to wait
         # for), decoding each frame's timestep (no decoded cache of every timestep: a frame decodes its own once).
         cuda = device.type == "cuda"
         self.driver = AvatarDriver(model, frame_graph=cuda, decoded_budget_bytes=0, compile_frames=False)
