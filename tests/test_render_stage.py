@@ -134,3 +134,19 @@ def test_render_of_the_finest_lod_alone_equals_that_lod_of_every_lod(fitted, tmp
     np.testing.assert_array_equal(tracks[1].centres, tracks[0].centres)
     with pytest.raises(ValueError, match=f"--lod {len(levels)}: .* has levels 0..{len(levels) - 1}"):
         render_split(checkpoint, capture, "novel_view", tmp_path / "beyond", cfg, raster, lods=[len(levels)])
+
+
+def test_the_stages_encode_workers_option_overrides_the_preset_and_is_checked():
+    """`--encode-workers` (the workflow passes its job's threads) replaces evaluate.encode_workers for render and
+    evaluate alike; below 1 it is refused naming the key, and without it the preset's value stands."""
+    from argparse import Namespace
+
+    from pig.config import ConfigError, load_preset
+    from pig.stages.evaluate import evaluate_section
+
+    preset = load_preset("paper")
+    assert evaluate_section(preset, Namespace(device=None, encode_workers=None)).encode_workers == 2
+    cfg = evaluate_section(preset, Namespace(device="cpu", encode_workers=12))
+    assert (cfg.encode_workers, cfg.device, cfg.lpips_net) == (12, "cpu", "vgg")
+    with pytest.raises(ConfigError, match="encode_workers"):
+        evaluate_section(preset, Namespace(device=None, encode_workers=0))

@@ -450,6 +450,19 @@ def _splat_track(level_dir: Path, capture, split: str) -> SplatTrack:
     return track
 
 
+def add_encode_workers_argument(parser, work: str) -> None:
+    parser.add_argument("--encode-workers", type=int, default=None, metavar="N",
+                        help=f"threads that {work} (default: the preset's evaluate.encode_workers; the workflow passes "
+                             f"its job's threads)")
+
+
+def evaluate_section(preset: dict, args) -> EvaluateConfig:
+    """The preset's evaluate section with the stage's --device and --encode-workers, where given."""
+    overrides = {key: value for key, value in (("device", args.device), ("encode_workers", args.encode_workers))
+                 if value is not None}
+    return load_section(preset, "evaluate", EvaluateConfig, overrides or None)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = stage_parser("evaluate", __doc__, "pig evaluate --capture results/synthetic/subject00/capture --renders "
                                                "results/synthetic/subject00/pig/renders/novel_view --split novel_view --output results/synthetic/subject00/pig/metrics")
@@ -461,11 +474,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lod", type=int, nargs="*", default=None, help="levels to evaluate (default: all rendered)")
     add_preset_argument(parser, "its evaluate section")
     add_device_argument(parser, None, "the preset's evaluate.device")
+    add_encode_workers_argument(parser, "decode the ground truth and the renders")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace files of the same names in an --output folder the evaluate stage did not write")
     args = parser.parse_args(argv)
-    cfg = load_section(load_preset(args.preset), "evaluate", EvaluateConfig, {"device": args.device} if args.device else None)
+    cfg = evaluate_section(load_preset(args.preset), args)
     evaluate_split(args.capture, args.renders, args.split, args.output, cfg, args.lod, args.overwrite)
     return 0
 

@@ -36,7 +36,7 @@ from pig.render.api import RasterizerConfig, render_gaussians
 from pig._cli import add_common_arguments, add_device_argument, add_preset_argument, run_cli, stage_parser
 from pig._io import write_json, write_png
 from pig._outputs import claim_dir, resumable_dir
-from pig.stages.evaluate import EvaluateConfig
+from pig.stages.evaluate import EvaluateConfig, add_encode_workers_argument, evaluate_section
 
 BLACK = (0.0, 0.0, 0.0)  # evaluation background (paper protocol: black, ground truth masked)
 
@@ -297,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output", type=Path, required=True, help="renders/{split} directory to write")
     add_preset_argument(parser, "its evaluate and rasterizer sections")
     add_device_argument(parser, None, "the preset's evaluate.device")
+    add_encode_workers_argument(parser, "encode the views")
     add_common_arguments(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing --output folder that is not an earlier render of a split")
@@ -306,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="also write every view as PNG with alpha and depth in OpenEXR (evaluate.every_view)")
     args = parser.parse_args(argv)
     preset = load_preset(args.preset)
-    cfg = load_section(preset, "evaluate", EvaluateConfig, {"device": args.device} if args.device else None)
+    cfg = evaluate_section(preset, args)
     rasterizer = load_section(preset, "rasterizer", RasterizerConfig)
     render_split(args.checkpoint, args.capture, args.split, args.output, cfg, rasterizer, args.overwrite,
                  args.every_view, args.lod)

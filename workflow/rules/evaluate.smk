@@ -30,7 +30,8 @@ rule render_split:
     shell:
         "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule render_split -- "
         "python -m pig render --checkpoint {input.checkpoint:q} --capture {params.capture:q} "
-        "--split {wildcards.split:q} --output {output:q} --preset {params.preset:q} > {log:q} 2>&1"
+        "--split {wildcards.split:q} --output {output:q} --preset {params.preset:q} --encode-workers {threads} "
+        "> {log:q} 2>&1"
 
 
 rule evaluate:
@@ -62,7 +63,7 @@ rule evaluate:
         "python -m pig.gpu_slots --gpus {resources.gpu} --preset {params.preset:q} --rule evaluate -- "
         "python -m pig evaluate --capture {params.capture:q} --renders {input.renders:q} "
         "--split {wildcards.split:q} --output {params.output:q} "
-        "--preset {params.preset:q} > {log:q} 2>&1"
+        "--preset {params.preset:q} --encode-workers {threads} > {log:q} 2>&1"
 
 
 rule make_tables:
