@@ -31,9 +31,9 @@ FORMAT = "pig-render-chunks/2"
 FORMAT_WITHOUT_IDS = "pig-render-chunks/1"
 MAX_MANIFEST_BYTES = 64 << 20  # a split of 10^6 frames lists them in ~8 MB
 # Lossless codecs by name: suffix and OpenCV's encoder flags (WebP quality above 100 is its lossless mode). PNG with
-# one row filter (Up) and run-length deflate at level 1: 0.37x the encoding time of zlib level 3 with libpng's
-# adaptive filters, and 0.90x the bytes, on 1330 x 1150 synthetic views (benchmarks/render_codecs.py; NOTES,
-# "Evaluation"); the render stage's novel-pose views are bound by their encoding.
+# one row filter (Up) and run-length deflate at level 1: 0.44-0.48x the encoding time of zlib level 3 with libpng's
+# adaptive filters, and 0.89-0.99x the bytes, on 1330 x 1150 synthetic views, here and on an H200's host
+# (benchmarks/render_codecs.py; NOTES, "Evaluation", run43); the render stage's novel-pose views are bound by it.
 CODECS = {"webp": (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101]),
           "png": (".png", [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP,
                            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE])}
