@@ -111,6 +111,23 @@ def test_real_time_frame_over_its_budget_decodes_its_timestep(avatars):
     assert 2 not in driver._decoded_all
 
 
+def test_the_decoded_budget_bounds_the_levels_held_together(avatars):
+    """A level that fits the budget alone but not beside the levels already held decodes in its frames instead."""
+    model = avatars[False]
+    budget = AvatarDriver(model).decoded_all_bytes(2)
+    driver = AvatarDriver(model, frame_graph=True, decoded_budget_bytes=budget)
+    pose = model.pose_init[1].numpy()
+    driver.posed_frame(2, pose)
+    assert driver.frame_graph_fits(2) and list(driver._decoded_all) == [2]
+    assert driver.decoded_all_bytes(0) < budget and not driver.frame_graph_fits(0)
+    for ours, theirs in zip(driver.posed_frame(0, pose)[0], AvatarDriver(model).gaussians(0, pose)):
+        torch.testing.assert_close(ours, theirs)
+    assert list(driver._decoded_all) == [2]
+    first_coarse = AvatarDriver(model, frame_graph=True, decoded_budget_bytes=budget)
+    first_coarse.posed_frame(0, pose)
+    assert list(first_coarse._decoded_all) == [0] and not first_coarse.frame_graph_fits(2)
+
+
 @pytest.mark.parametrize("budget", [8 << 30, 0])
 @pytest.mark.parametrize("refine", [True, False])
 def test_timestep_frame_equals_the_per_timestep_path(avatars, refine, budget):

@@ -12,8 +12,8 @@ Per frame there remain the posed body, the transport of the level's anchors and 
 (`nearest_timestep`, `body`, `transport`, `decoded`, `splats`) are public so that they can be timed apart.
 
 The real-time path (`frame_graph=True`) goes further for pose-driven frames: the decoders' outputs of every
-training timestep at the level are computed once and held stacked on the device (when they fit in
-`decoded_budget_bytes`), and so is the body's rest shape (shape and expression blend, rest joints) of every
+training timestep at the level are computed once and held stacked on the device (while the levels held fit in
+`decoded_budget_bytes` together), and so is the body's rest shape (shape and expression blend, rest joints) of every
 training timestep, so a frame is pose -> nearest timestep (an argmin on the device) -> posed body ->
 transport -> a gather of the decoded timestep -> Eqs. 10-11, with no host synchronisation. On CUDA that
 function is compiled and captured once per level as a CUDA graph: the frame's hundreds of small kernels
@@ -188,9 +188,12 @@ class AvatarDriver:
         return self._decoded_all[lod]
 
     def frame_graph_fits(self, lod: int) -> bool:
-        """Whether the decoded outputs of every timestep at `lod` fit the budget: frames then gather their timestep's
-        instead of decoding it."""
-        return self.decoded_all_bytes(lod) <= self.decoded_budget_bytes
+        """Whether the decoded outputs of every timestep at `lod` are held or fit the budget beside the levels already
+        held (the budget bounds them all together): frames then gather their timestep's instead of decoding it."""
+        if lod in self._decoded_all:
+            return True
+        held = sum(self.decoded_all_bytes(level) for level in self._decoded_all)
+        return held + self.decoded_all_bytes(lod) <= self.decoded_budget_bytes
 
     def _frame(self, lod: int, pose: torch.Tensor | None, transl: torch.Tensor | None,
                step: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
