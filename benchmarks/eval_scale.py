@@ -33,6 +33,7 @@ views/s bound they imply with evaluate.encode_workers encoding threads.
     python benchmarks/eval_scale.py --workdir /tmp/evscale                     # CUDA: paper preset, whole protocol
     python benchmarks/eval_scale.py --workdir /tmp/evscale --device cpu --preset cpu-demo --fraction 0.004 \\
         --width 333 --height 288 --iterations 20 --code /path/to/other/checkout --evaluate-per-lod
+    python benchmarks/eval_scale.py --combine half_a.json half_b.json   # runs' stage tables summed (two halves)
 """
 from __future__ import annotations
 
@@ -490,9 +491,42 @@ def frame_paths(renderer, capture, split: str, frames: int, dev: torch.device) -
     return rows
 
 
+def print_stage_table(rows: list[dict]) -> None:
+    """The per-stage table: views, wall time, views a second, peak host and GPU memory, bytes written."""
+    print(f"{'stage':<14} {'split':<11} {'views':>7} {'wall s':>8} {'views/s':>8} {'RSS MiB':>8} {'GPU MiB':>8} "
+          f"{'bytes':>12} {'B/view':>8}")
+    for row in rows:
+        print(f"{row['stage']:<14} {row['split']:<11} {row['views']:>7} {row['wall_s']:>8.1f} "
+              f"{row['views'] / row['wall_s']:>8.1f} {row['peak_rss_mib']:>8.0f} {row['peak_gpu_mib']:>8.0f} "
+              f"{row['bytes']:>12} {row['bytes'] / row['views']:>8.0f}")
+    total = {key: sum(row[key] for row in rows) for key in ("wall_s", "bytes")}
+    print(f"{'total':<14} {'':<11} {'':>7} {total['wall_s']:>8.1f} {'':>8} {'':>8} {'':>8} {total['bytes']:>12}")
+
+
+def combined_rows(runs: list[list[dict]]) -> list[dict]:
+    """Several runs' stage rows as one protocol's (e.g. its two halves at --fraction 0.5): per stage and split the
+    views, wall seconds and bytes summed, the peak memories the largest; in the first run's order."""
+    merged: dict[tuple[str, str], dict] = {}
+    for rows in runs:
+        for row in rows:
+            key = (row["stage"], row["split"])
+            if key not in merged:
+                merged[key] = {k: row[k] for k in ("stage", "split", "views", "wall_s", "peak_rss_mib", "peak_gpu_mib",
+                                                    "bytes")}
+                continue
+            into = merged[key]
+            for k in ("views", "wall_s", "bytes"):
+                into[k] += row[k]
+            for k in ("peak_rss_mib", "peak_gpu_mib"):
+                into[k] = max(into[k], row[k])
+    return list(merged.values())
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--workdir", type=Path, required=True)
+    parser.add_argument("--combine", type=Path, nargs="+", metavar="JSON",
+                        help="print the summed stage table of earlier runs' --json files, and nothing else")
+    parser.add_argument("--workdir", type=Path)
     parser.add_argument("--fraction", type=float, default=1.0, help="share of THuman4's 2000 + 500 frames")
     parser.add_argument("--width", type=int, default=1330)
     parser.add_argument("--height", type=int, default=1150)
@@ -525,6 +559,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="also time each part of a render second alone on this many novel-pose frames")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args(argv)
+    if args.combine:
+        runs = [json.loads(path.read_text())["rows"] for path in args.combine]
+        print(f"{len(runs)} runs combined: {', '.join(map(str, args.combine))}")
+        print_stage_table(combined_rows(runs))
+        return 0
+    if args.workdir is None:
+        parser.error("--workdir is required (unless --combine)")
     args.workdir.mkdir(parents=True, exist_ok=True)
     capture = protocol_capture(args.workdir, args.fraction, args.width, args.height, args.generated_frames,
                                args.workers, args.upscale)
@@ -577,14 +618,7 @@ def main(argv: list[str] | None = None) -> int:
                          "device_wait_s": waits.get("device_wait_s")})
     print(f"\ncapture {capture.name}: {args.width} x {args.height}, code {env['PYTHONPATH'].split(os.pathsep)[0]}, "
           f"device {args.device}, preset {args.preset}")
-    print(f"{'stage':<14} {'split':<11} {'views':>7} {'wall s':>8} {'views/s':>8} {'RSS MiB':>8} {'GPU MiB':>8} "
-          f"{'bytes':>12} {'B/view':>8}")
-    for row in rows:
-        print(f"{row['stage']:<14} {row['split']:<11} {row['views']:>7} {row['wall_s']:>8.1f} "
-              f"{row['views'] / row['wall_s']:>8.1f} {row['peak_rss_mib']:>8.0f} {row['peak_gpu_mib']:>8.0f} "
-              f"{row['bytes']:>12} {row['bytes'] / row['views']:>8.0f}")
-    total = {key: sum(row[key] for row in rows) for key in ("wall_s", "bytes")}
-    print(f"{'total':<14} {'':<11} {'':>7} {total['wall_s']:>8.1f} {'':>8} {'':>8} {'':>8} {total['bytes']:>12}")
+    print_stage_table(rows)
     for row in rows:
         if row.get("decode_wait_s") is not None:
             print(f"{row['stage']} {row['split']}: waited {row['decode_wait_s']:.1f} s for decoding, "

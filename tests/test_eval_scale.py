@@ -13,7 +13,7 @@ from pig.stages.evaluate import EvaluateConfig
 from pig.stages.render import render_split
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from eval_scale import render_breakdown  # noqa: E402
+from eval_scale import combined_rows, render_breakdown  # noqa: E402
 
 SPLIT = "novel_view"  # 3 frames in the small capture (novel_pose has 1): a warm-up frame and two timed
 
@@ -73,3 +73,25 @@ def test_render_breakdown_rasterizes_and_encodes_what_the_stage_stores(tiny_fit,
         assert frame_ms[f"{SPLIT} frame avatar, lod{lod}, launched (old)"] > 0
     assert next(row["difference"] for row in rows if "difference" in row) == 0.0
     assert not list(tmp_path.glob(".render-breakdown-*"))  # the chunk writes' scratch folder is gone
+
+
+def test_two_halves_combine_into_one_protocol_table():
+    """--combine: per stage and split the views, seconds and bytes add up and the peaks are the larger; the first
+    run's order is kept, and a stage only the second run has is kept too."""
+    def row(stage, split, views, wall, rss, gpu, size):
+        return {"stage": stage, "split": split, "views": views, "wall_s": wall, "peak_rss_mib": rss,
+                "peak_gpu_mib": gpu, "bytes": size, "psnr": [30.0]}
+
+    first = [row("render", "novel_view", 4000, 76.1, 4952, 768, 896), row("evaluate all", "novel_view", 4000, 49.9,
+                                                                           5894, 30181, 2)]
+    second = [row("evaluate all", "novel_view", 4000, 30.1, 6000, 30000, 3), row("render", "novel_view", 4000, 33.9,
+                                                                                  4000, 900, 900),
+              row("render", "novel_pose", 24000, 60.0, 4100, 2700, 5000)]
+    merged = combined_rows([first, second])
+    assert [(r["stage"], r["split"]) for r in merged] == [("render", "novel_view"), ("evaluate all", "novel_view"),
+                                                          ("render", "novel_pose")]
+    assert merged[0] == {"stage": "render", "split": "novel_view", "views": 8000, "wall_s": 110.0,
+                         "peak_rss_mib": 4952, "peak_gpu_mib": 900, "bytes": 1796}
+    assert (merged[1]["views"], merged[1]["wall_s"], merged[1]["peak_rss_mib"], merged[1]["bytes"]) == (8000, 80.0,
+                                                                                                      6000, 5)
+    assert merged[2]["views"] == 24000 and first[0]["views"] == 4000  # the inputs are left as they were
