@@ -38,6 +38,7 @@ views/s bound they imply with evaluate.encode_workers encoding threads.
 from __future__ import annotations
 
 import argparse
+import copy
 import importlib
 import json
 import os
@@ -459,15 +460,10 @@ def frame_paths(renderer, capture, split: str, frames: int, dev: torch.device) -
     from pig.avatar.driver import AvatarDriver
 
     model = renderer.model
-    launched = AvatarDriver(model)
+    launched = copy.copy(renderer)  # the stage's own frame routing, with the launched driver
+    launched.driver = AvatarDriver(model)
     kinds = {name: [int(f) for f in capture.split[name]["frames"]][:frames + 1]
              for name in dict.fromkeys([split, "novel_view"]) if name in capture.split}
-
-    def launched_frame(frame: int, lod: int):
-        if frame in model.frame_ids:
-            return launched.gaussians(lod, timestep=model.timestep_of_frame(frame))
-        pose = capture.params.select([renderer.row_of_frame[frame]])
-        return launched.gaussians(lod, pose.full_pose[0], pose.transl[0])
 
     timed, rows, gap = PartTimer(dev), [], 0.0
     print(f"\na frame's avatar, the stage's driver against the launched one (old): ms a frame, mean of {frames} "
@@ -478,8 +474,8 @@ def frame_paths(renderer, capture, split: str, frames: int, dev: torch.device) -
         for kind, picks in kinds.items():
             for i, frame in enumerate(picks):
                 ours = [t.clone() for t in timed(f"{kind} {lod} stage {i > 0}", lambda: renderer.gaussians(frame, lod))]
-                theirs = timed(f"{kind} {lod} launched {i > 0}", lambda: launched_frame(frame, lod))
-                gap = max(gap, max(float((a - b.float()).abs().max()) for a, b in zip(ours, theirs)))
+                theirs = timed(f"{kind} {lod} launched {i > 0}", lambda: launched.gaussians(frame, lod))
+                gap = max(gap, max(float((a - b).abs().max()) for a, b in zip(ours, theirs)))
             stage, old = (timed.times.get(f"{kind} {lod} {path} True", [float("nan")]) for path in ("stage", "launched"))
             stage_ms, old_ms = 1000 * float(np.mean(stage)), 1000 * float(np.mean(old))
             rows += [{"part": f"{kind} frame avatar, lod{lod}, stage", "ms_per_frame": stage_ms},

@@ -247,16 +247,17 @@ class AvatarDriver:
             *splats, step = self._frame(lod, self._pose(pose), None if transl is None else self._transl(transl))
             return tuple(splats), step
         # Host inputs stay on the host until the graph's one asynchronous copy (_FrameGraph.run).
-        query = self._pose(pose, keep_device=True)
-        if transl is None:
-            graph = self._graph(lod, "pose", lambda inputs: self._frame(lod, inputs.view(55, 3), None),
-                                55 * 3, self.model.pose_init.dtype)
-            *splats, step = graph.run(query)
-        else:
-            graph = self._graph(lod, "pose+transl",
-                                lambda inputs: self._frame(lod, inputs[: 55 * 3].view(55, 3), inputs[55 * 3 :].view(1, 3)),
-                                55 * 3 + 3, self.model.pose_init.dtype)
-            *splats, step = graph.run(query, self._transl(transl, keep_device=True))
+        parts = [self._pose(pose, keep_device=True)]
+        if transl is not None:
+            parts.append(self._transl(transl, keep_device=True))
+
+        def frame(inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:  # pose values, then the translation's if any
+            translation = None if transl is None else inputs[55 * 3 :].view(1, 3)
+            return self._frame(lod, inputs[: 55 * 3].view(55, 3), translation)
+
+        kind = "pose" if transl is None else "pose+transl"
+        graph = self._graph(lod, kind, frame, 55 * 3 + 3 * (transl is not None), self.model.pose_init.dtype)
+        *splats, step = graph.run(*parts)
         return tuple(splats), step
 
     @torch.no_grad()

@@ -63,8 +63,8 @@ class EvaluateConfig:
     inception_weights: str | None = None  # TorchScript inception-2015-12-05.pt; None: torch hub cache
     fid_min_images: int = DEFAULT_MIN_IMAGES  # FID over fewer images per set is flagged as biased (still computed)
     # Arithmetic of the LPIPS backbone and of the FID Inception (pig.metrics.precision): float32 (the reference), or
-    # float16 / bfloat16 under autocast, the features widened to float32 before distances and statistics; PSNR and
-    # SSIM stay float32. Lower precision only where its parity with float32 is shown (benchmarks/NOTES.md, "Lower-
+    # float16 / bfloat16 under autocast, every distance and statistic of the features in float32; PSNR and SSIM
+    # stay float32. Lower precision only where its parity with float32 is shown (benchmarks/NOTES.md, "Lower-
     # precision metric networks"): LPIPS-VGG is most of the device's time, the Inception ~3 % of it.
     lpips_precision: Literal["float32", "float16", "bfloat16"] = "float32"
     fid_precision: Literal["float32", "float16", "bfloat16"] = "float32"
