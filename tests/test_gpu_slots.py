@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import pytest
@@ -267,3 +268,38 @@ def test_a_gpu_for_a_rule_without_a_slot_is_refused(gpu_workflow):
     code, output = snakemake_exit(gpu_workflow, TARGET, "--dry-run")
     assert code == 1
     assert f"{PRESET}: section 'resources' gives rule make_tables a GPU, which it does not use" in output
+
+
+class _Input(str):
+    """An input path as Snakemake's scheduler sees it (no temp() flag)."""
+
+    def is_flagged(self, flag: str) -> bool:
+        return False
+
+
+def test_a_ready_fit_takes_the_free_gpu_before_renders_and_evaluations_with_more_input_bytes(recorded):
+    """Snakemake's greedy scheduler, given each rule's job priority as the workflow sets it (a dry run's job
+    records), hands the one free GPU to a waiting fit, not to a ready render or evaluation whose inputs are larger:
+    the fits are the longest jobs, and starting them last left GPUs idle (run44). Without the priorities the same
+    scheduler picks the evaluation (the reward falls back to input bytes), so the test tells them apart."""
+    from snakemake.scheduling.greedy import Scheduler, SchedulerSettings
+
+    output = snakemake_run(recorded, TARGET, "--dry-run", "--forceall")
+    priorities: dict[str, set[int]] = {}
+    for block in re.split(r"\n(?:local)?rule ", output)[1:]:
+        found = re.search(r"^\s+priority: (-?\d+)$", block, re.M)
+        priorities.setdefault(block.split(":", 1)[0], set()).add(int(found.group(1)) if found else 0)
+    assert {"fit_avatar", "render_split", "evaluate"} <= set(priorities), output[-3000:]
+    sizes = {"fit_avatar": 10**6, "render_split": 10**9, "evaluate": 10**10}  # capture < avatar < renders
+
+    def pick(priority_of) -> str:
+        jobs = [types.SimpleNamespace(rule=rule, priority=priority_of(rule), input=[_Input(rule)],
+                                      scheduler_resources={"_cores": 1, "gpu": 1}) for rule in sizes]
+        scheduler = Scheduler(dag=None, settings=SchedulerSettings(), logger=None)
+        chosen = scheduler.select_jobs(jobs, jobs, {"_cores": 64, "gpu": 1}, {_Input(r): n for r, n in sizes.items()})
+        assert len(chosen) == 1
+        return chosen[0].rule
+
+    assert all(len(values) == 1 for values in priorities.values()), priorities  # per rule, not per job
+    assert pick(lambda rule: next(iter(priorities[rule]))) == "fit_avatar"
+    assert pick(lambda rule: 0) == "evaluate"

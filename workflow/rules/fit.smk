@@ -4,6 +4,10 @@
 # time left) go to the log and, through `tee`, to the console (the shell's pipefail keeps the fit's exit status).
 # A preset's `gpu: N` for the rule (N > 1) fits one avatar on N GPUs at once: the local slots give the job N devices,
 # Slurm's sbatch asks for N (--gpus), and `pig fit --gpus N` runs one process on each (docs/gpu.md).
+# Fits start before the renders and evaluations that are ready beside them (`priority`): they are the longest jobs,
+# and Snakemake otherwise picks among equal priorities the job with the most input bytes, a render or an evaluate,
+# so the last fits start late and leave devices idle at the end (run44, 6 fits on 4 GPUs: 330 s against 278 s
+# replayed fits first; benchmarks/NOTES.md, "Workflow", "The tables workload on four GPUs").
 
 
 rule fit_avatar:
@@ -27,6 +31,7 @@ rule fit_avatar:
     conda:
         conda_env("fit_avatar")
     threads: preset_threads("fit_avatar")
+    priority: 1
     resources:
         **preset_resources("fit_avatar"),
     params:
