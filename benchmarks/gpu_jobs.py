@@ -34,7 +34,7 @@ def on_table_day(clock: str) -> datetime.datetime:
 
 
 def read_jobs(paths: list[Path]) -> list[dict]:
-    """Rows of job_timeline tables: {rule, key (wildcards), start, end (datetime), seconds, status, device}. A job
+    """Rows of job_timeline tables: {rule, wildcards (a dict), start, end (datetime), seconds, status, device}. A job
     killed in one run and done in the next keeps both rows."""
     jobs = []
     for path in paths:
@@ -129,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
         inside = [s for s in samples if s[1] == device and window and window[0] <= s[0] <= window[1]]
         utilisation = f"{sum(s[2] for s in inside) / len(inside):.0f}" if inside else "n/a"
         peak = f"{max(s[3] for s in inside):.0f}" if inside else "n/a"
-        print(f"| {device} | {len(mine)} | {held:.0f} | {held / window_s:.0%} | {utilisation} | {peak} |")
+        share = f"{held / window_s:.0%}" if window_s else "n/a"
+        print(f"| {device} | {len(mine)} | {held:.0f} | {share} | {utilisation} | {peak} |")
 
     if samples:
         print("\n| rule | jobs | mean utilisation % while one held its GPU | samples |")
