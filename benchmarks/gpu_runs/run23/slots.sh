@@ -93,8 +93,12 @@ with open(path, "w") as out:
 PY
      (nvidia-smi -L || echo "no nvidia-smi") > "$R/devices.txt" 2>&1
      snake plan_tables --cores 1 --config preset=run23 "$VARIANTS" > "$R/plan.txt" 2>&1
-     command -v nvidia-smi >/dev/null && setsid nvidia-smi --query-gpu=timestamp,index,utilization.gpu,memory.used \
-       --format=csv -l 2 > "$W/smi.csv" 2>/dev/null < /dev/null &
+     # An `if`, not `command -v ... && setsid ... &`: that backgrounds the whole list in a subshell that keeps the
+     # call's output open while the sampler runs (run44: a call piped to `tail` hung to its time limit).
+     if command -v nvidia-smi >/dev/null; then
+       setsid nvidia-smi --query-gpu=timestamp,index,utilization.gpu,memory.used --format=csv -l 2 \
+         > "$W/smi.csv" 2>/dev/null < /dev/null &
+     fi
      start_snake snakemake; sleep 5; wait_run "${WAIT:-420}" ;;
   k) # a fit ended and another has run KILL_AFTER s: SIGINT to Snakemake's process group, as Ctrl-C
      end=$((SECONDS + ${WAIT:-540}))
