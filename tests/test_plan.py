@@ -36,37 +36,64 @@ from pig.gpu_slots import DEVICES_ENV, LOCK_DIR_ENV, lock_path
 PAPER_TABLES = ("--configfile", str(REPO / "config" / "paper_tables.yaml"))
 
 
-def test_makespan_longest_first_on_the_device_that_frees_first():
+def fits_alone(durations: list[float]) -> list[tuple[float, list[float]]]:
+    return [(duration, []) for duration in durations]
+
+
+def test_makespan_of_fits_alone_longest_first_on_the_device_that_frees_first():
     # By hand: 3 and 3 on the two devices, then 2 on each, the last 2 on either: 3 + 2 + 2 = 7 (the optimum, 6, puts
     # 3 + 3 on one; longest-first does not find it).
-    assert makespan_s([2, 3, 2, 3, 2], 2) == 7
-    assert makespan_s([2, 3, 2, 3, 2], 1) == 12
-    assert makespan_s([2, 3, 2, 3, 2], 8) == 3
+    assert makespan_s(fits_alone([2, 3, 2, 3, 2]), 2) == 7
+    assert makespan_s(fits_alone([2, 3, 2, 3, 2]), 1) == 12
+    assert makespan_s(fits_alone([2, 3, 2, 3, 2]), 8) == 3
     assert makespan_s([], 4) == 0
     rng = random.Random(0)
     for _ in range(50):  # Graham's bounds for list scheduling, against the exhaustive optimum
         jobs, gpus = [rng.uniform(0.1, 5) for _ in range(rng.randint(1, 7))], rng.randint(1, 3)
         best = min(max(sum(j for j, d in zip(jobs, assign) if d == g) for g in range(gpus))
                    for assign in itertools.product(range(gpus), repeat=len(jobs)))
-        assert best - 1e-9 <= makespan_s(jobs, gpus) <= best * (4 / 3 - 1 / (3 * gpus)) + 1e-9
+        assert best - 1e-9 <= makespan_s(fits_alone(jobs), gpus) <= best * (4 / 3 - 1 / (3 * gpus)) + 1e-9
     with pytest.raises(ValueError, match="at least one GPU"):
-        makespan_s([1.0], 0)
+        makespan_s(fits_alone([1.0]), 0)
 
 
-def test_makespan_closed_forms_and_the_optimum_with_few_jobs():
+def test_makespan_of_fits_alone_closed_forms_and_the_optimum_with_few_jobs():
     rng = random.Random(1)
     for _ in range(50):
         jobs = [rng.uniform(0.1, 5) for _ in range(rng.randint(1, 6))]
-        assert makespan_s(jobs, 1) == pytest.approx(sum(jobs))  # one GPU: one after the other
-        assert makespan_s(jobs, len(jobs) + rng.randint(0, 3)) == max(jobs)  # a GPU each: the longest
+        assert makespan_s(fits_alone(jobs), 1) == pytest.approx(sum(jobs))  # one GPU: one after the other
+        assert makespan_s(fits_alone(jobs), len(jobs) + rng.randint(0, 3)) == max(jobs)  # a GPU each: the longest
         # One job more than GPUs: some GPU runs two, at best the two shortest, so the optimum is
         # max(longest, sum of the two shortest), which longest-first reaches; checked against every assignment.
         gpus = len(jobs) - 1
         if gpus:
             best = min(max(sum(j for j, d in zip(jobs, assign) if d == g) for g in range(gpus))
                        for assign in itertools.product(range(gpus), repeat=len(jobs)))
-            assert makespan_s(jobs, gpus) == pytest.approx(best)
+            assert makespan_s(fits_alone(jobs), gpus) == pytest.approx(best)
             assert best == pytest.approx(max(max(jobs), sum(sorted(jobs)[:2])))
+
+
+def test_makespan_runs_every_fit_before_the_splits_as_the_workflow_does():
+    # Three fits of 10 s with one 3-s split each, 2 GPUs. Fits a and b at 0-10, fit c at 10-20 on the first device
+    # to free; the splits of a and b at 10-13 and 13-16 on the other; c's at 20-23. Each fit with its split as one
+    # job (the model before run44) would end at 26: a and b's splits before c's fit.
+    assert makespan_s([(10, [3]), (10, [3]), (10, [3])], 2) == 23
+    # One GPU: everything one after the other; a GPU for each fit: the fit, then its splits side by side.
+    assert makespan_s([(10, [3, 2]), (5, [4])], 1) == 24
+    assert makespan_s([(10, [3, 2]), (5, [4])], 4) == 13
+    # A finished fit's splits start at once on a device no fit needs; else after the fits have started.
+    assert makespan_s([(0, [4]), (6, [1])], 2) == 7
+    assert makespan_s([(0, [4]), (6, [1])], 1) == 11
+    rng = random.Random(2)
+    for _ in range(50):  # bounds: at least the busiest chain and the work over the devices; at most the work
+        fits = [(rng.uniform(0, 5), [rng.uniform(0.1, 2) for _ in range(rng.randint(0, 2))])
+                for _ in range(rng.randint(1, 6))]
+        gpus = rng.randint(1, 4)
+        work = sum(f + sum(s) for f, s in fits)
+        longest_chain = max(f + max(s, default=0) for f, s in fits)
+        got = makespan_s(fits, gpus)
+        assert max(longest_chain, work / gpus) - 1e-9 <= got <= work + 1e-9
+        assert makespan_s(fits, 1) == pytest.approx(work)
 
 
 def test_a_split_costs_its_frames_views_pixels_and_one_pass():
@@ -105,17 +132,22 @@ def test_plan_adds_render_and_evaluate_per_split_left_and_schedules_fit_and_spli
     # novel_pose (half the pixels): render L (5 x 0.1 + 40 x 0.5 x 0.05) = 1.5L, evaluate 3 + L x 40 x 0.5 x 0.025.
     nv = {2: 4 + 4, 1: 2 + 3.5}
     np_render, np_eval = {2: 3.0, 1: 1.5}, {2: 4.0, 1: 3.5}
-    got = {(p.subject, p.variant): (p.levels, p.fit_s, p.splits_left, p.protocol_s) for p in planned}
-    assert got == {("a", "pig"): (2, 0.0, [], 0.0),
-                   ("b", "pig"): (2, 0.0, ["novel_view", "novel_pose"], pytest.approx(nv[2] + np_eval[2])),
+    got = {(p.subject, p.variant): (p.levels, p.fit_s, p.splits_left, p.split_s) for p in planned}
+    assert got == {("a", "pig"): (2, 0.0, [], {}),
+                   ("b", "pig"): (2, 0.0, ["novel_view", "novel_pose"],
+                                  {"novel_view": pytest.approx(nv[2]), "novel_pose": pytest.approx(np_eval[2])}),
                    ("b", "one_level"): (1, pytest.approx(10.0), ["novel_view", "novel_pose"],
-                                        pytest.approx(nv[1] + np_render[1] + np_eval[1]))}
-    jobs = [nv[2] + np_eval[2], 10.0 + nv[1] + np_render[1] + np_eval[1]]  # 12 s and 22.5 s
+                                        {"novel_view": pytest.approx(nv[1]),
+                                         "novel_pose": pytest.approx(np_render[1] + np_eval[1])})}
+    assert planned[1].protocol_s == pytest.approx(nv[2] + np_eval[2])
+    work = nv[2] + np_eval[2] + 10.0 + nv[1] + np_render[1] + np_eval[1]  # 12 s left of b/pig, 20.5 of b/one_level
     text = format_plan(planned, [1, 2, 5])
     assert "1 of 3 fits to run, 4 of 6 held-out splits to render and evaluate" in text
-    assert f"GPU-hours: fits {10 / 3600:.2f}, render + evaluate {(sum(jobs) - 10) / 3600:.2f}, total " \
-           f"{sum(jobs) / 3600:.2f}" in text
-    hours = {1: sum(jobs), 2: max(jobs), 5: max(jobs)}
+    assert f"GPU-hours: fits {10 / 3600:.2f}, render + evaluate {(work - 10) / 3600:.2f}, total " \
+           f"{work / 3600:.2f}" in text
+    # By hand, 2 GPUs: one_level's fit on one (0-10); b/pig's splits, 8 and 4 s, on the other (0-8, 8-12);
+    # one_level's, 5.5 and 5 s, from 10 on the first to free: 10-15.5 and 12-17. 5 GPUs: 10 + 5.5.
+    hours = {1: work, 2: 17.0, 5: 15.5}
     assert [line.strip() for line in text.splitlines() if line.startswith("  on ")] == [
         f"on {n} GPU(s): {hours[n] / 3600:.2f} h" for n in (1, 2, 5)]
     # Preprocess: subject b only (a's capture is written), 300 views of 4x the reference's pixels at 10 a second.
@@ -182,7 +214,7 @@ def test_plan_counts_iterations_lpips_budget_and_checkpoints(tmp_path):
     text = format_plan(planned, gpus=[2])
     total_h = (750 * 0.3 + 400 * 0.02 + 5.0 + 1.0) / 3600
     assert "4 of 5 fits to run" in text and f"GPU-hours: fits {total_h:.2f}; render + evaluate not counted" in text
-    assert f"on 2 GPU(s): {makespan_s([225, 8, 5, 1], 2) / 3600:.2f} h" in text
+    assert f"on 2 GPU(s): {makespan_s(fits_alone([225, 8, 5, 1]), 2) / 3600:.2f} h" in text
     with pytest.raises(ValueError, match="positive"):
         plan_fits(preset, runs, results, ms_per_iteration=0.0)
     (results / "s2" / "pig" / "checkpoint.pt").write_bytes(b"not a checkpoint")
@@ -227,10 +259,13 @@ def test_plan_of_the_paper_tables_on_dna_needs_no_data(fresh):
     # The protocol's render and evaluate at the default rates but for the 60 s a pass set in plan_rates.
     protocol = nominal_protocol(load_preset("paper"), load_dataset("dna")[0])
     rates = ProtocolRates(evaluate_s_per_split=60.0)
-    per_fit_s = sum(split_seconds(size, 4, rates) for size in protocol.splits.values())
+    split_s = [split_seconds(size, 4, rates) for size in protocol.splits.values()]
+    per_fit_s = sum(split_s)
     assert f"GPU-hours: fits {fits_h:.2f}, render + evaluate {12 * per_fit_s / 3600:.2f}" in output
     assert f"on 1 GPU(s): {(fits_h + 12 * per_fit_s / 3600):.2f} h" in output
-    assert f"on 8 GPU(s): {2 * (100_000 * 0.5 + per_fit_s) / 3600:.2f} h" in output  # 12 equal jobs: two rounds
+    # 8 GPUs: 8 fits, then 4 (two rounds of 50,000 s); the first 8 fits' 16 splits on the 4 free devices meanwhile
+    # (2 x per_fit_s each, far less than a fit), the last 4 fits' 8 splits on the 8 devices at once.
+    assert f"on 8 GPU(s): {(2 * 100_000 * 0.5 + max(split_s)) / 3600:.2f} h" in output
 
 
 def _hold(path: Path):

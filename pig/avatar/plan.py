@@ -1,5 +1,5 @@
 """The fits a set of tables needs, and an estimate of their GPU time: each fit's iterations, then the render and
-evaluate passes of its held-out splits, scheduled onto a number of GPUs.
+evaluate passes of its held-out splits, scheduled onto a number of GPUs in the workflow's order (fits first).
 
 Each fit's iterations (and `fit.time_budget_s`) come from the preset after its variant's overrides; its time per
 iteration is the one given for fits with or without the LPIPS term of Eq. 15, as the preset sets `weight_lpips`.
@@ -77,13 +77,13 @@ class PlannedFit:
     done_iterations: int  # from a checkpoint.pt; all of them when avatar.pt exists
     fit_s: float  # GPU seconds of the fit left, at ms_per_iteration and within fit.time_budget_s
     state: str  # "to run", "resumes at N", "done"
-    protocol_s: float | None  # GPU seconds of render + evaluate left; None without the dataset's sizes
+    split_s: dict[str, float] | None  # GPU seconds of each split left, render + evaluate; None without sizes
     splits_left: list[str] = field(default_factory=list)  # held-out splits not yet scored
 
     @property
-    def remaining_s(self) -> float:
-        """GPU seconds left: the fit, then its splits' render and evaluate (where the sizes are known)."""
-        return self.fit_s + (self.protocol_s or 0.0)
+    def protocol_s(self) -> float | None:
+        """GPU seconds of render + evaluate left; None without the dataset's sizes."""
+        return None if self.split_s is None else sum(self.split_s.values())
 
 
 def checkpoint_progress(path: Path) -> tuple[int, float]:
@@ -132,11 +132,11 @@ def plan_fits(preset: dict, runs: list[tuple[str, str]], results: Path, ms_per_i
             done, spent_s, state = 0, 0.0, "to run"
         fit_s = max(0.0, min((cfg.iterations - done) * ms / 1000, budget_s - spent_s))
         left = [split for split in HELD_OUT if not (folder / "metrics" / f"{split}.json").exists()]
-        protocol_s = None if protocol is None else sum(
-            split_seconds(protocol.splits[split], levels, rates, (folder / "renders" / split).is_dir())
-            for split in left)
+        split_s = None if protocol is None else {
+            split: split_seconds(protocol.splits[split], levels, rates, (folder / "renders" / split).is_dir())
+            for split in left}
         planned.append(PlannedFit(subject, variant, cfg.iterations, lpips, ms, levels, done, fit_s, state,
-                                  protocol_s, left))
+                                  split_s, left))
     return planned
 
 
@@ -148,15 +148,24 @@ def preprocess_seconds(subjects: list[str], results: Path, protocol: Protocol, r
     return len(left), len(left) * per_subject
 
 
-def makespan_s(durations: list[float], gpus: int) -> float:
-    """Wall seconds to run `durations` on `gpus` devices, one job each at a time, longest first onto the device
-    that frees first (what a scheduler that starts the longest jobs first achieves)."""
+def makespan_s(fits: list[tuple[float, list[float]]], gpus: int) -> float:
+    """Wall seconds of `fits` [(fit seconds, [seconds of each of its splits' render and evaluate]), ...] on `gpus`
+    devices as the workflow runs them: every fit before any render or evaluate (the fit rule's priority), the
+    longest first onto the device that frees first; then each split, once its fit has ended, onto the device that
+    frees first, in the order their fits end (the longer split first among those of one moment)."""
     if gpus < 1:
         raise ValueError(f"expected at least one GPU, found {gpus}")
-    loads = [0.0] * gpus
-    for duration in sorted(durations, reverse=True):
-        heapq.heapreplace(loads, loads[0] + duration)
-    return max(loads)
+    free = [0.0] * gpus  # a heap of the times the devices free
+    ready = []  # (when a split may start, minus its seconds)
+    for fit_s, splits in sorted(fits, key=lambda fit: -fit[0]):
+        end = 0.0
+        if fit_s > 0:
+            end = heapq.heappop(free) + fit_s
+            heapq.heappush(free, end)
+        ready += [(end, -seconds) for seconds in splits if seconds > 0]
+    for at, minus_seconds in sorted(ready):
+        heapq.heappush(free, max(heapq.heappop(free), at) - minus_seconds)
+    return max(free)
 
 
 def format_plan(planned: list[PlannedFit], gpus: list[int], preprocess: tuple[int, float] | None = None) -> str:
@@ -185,11 +194,11 @@ def format_plan(planned: list[PlannedFit], gpus: list[int], preprocess: tuple[in
     if preprocess is not None:
         lines.append(f"preprocess: {preprocess[0]} subject(s) to preprocess, {preprocess[1] / 3600:.2f} h on the CPU, "
                      "one after the other; a subject's fits start once its capture is written")
-    jobs = [fit.remaining_s for fit in planned if fit.remaining_s > 0]
+    fits = [(fit.fit_s, list((fit.split_s or {}).values())) for fit in planned]
     if gpus:
-        lines.append("wall time, each fit then its splits' render and evaluate on one device, the longest first onto "
-                     "the device that frees first:")
-        lines.extend(f"  on {count} GPU(s): {makespan_s(jobs, count) / 3600:.2f} h" for count in gpus)
+        lines.append("wall time, as the workflow orders the jobs: the fits first, the longest first onto the device "
+                     "that frees first, then each split's render and evaluate once its fit has ended:")
+        lines.extend(f"  on {count} GPU(s): {makespan_s(fits, count) / 3600:.2f} h" for count in gpus)
     return "\n".join(lines)
 
 
