@@ -104,12 +104,17 @@ def read_smi(path: Path) -> list[tuple[datetime.datetime, str, float, float]]:
     return samples
 
 
+def positive_int(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a GPU count of at least 1, found {text!r}")
+    return int(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("tables", type=Path, nargs="+", help="job_timeline.py tables of the run (and its reruns)")
     parser.add_argument("--smi", type=Path, help="nvidia-smi samples of the run")
-    parser.add_argument("--gpus", type=int, default=4, choices=range(1, 65), metavar="N",
-                        help="the machine's GPUs (default 4)")
+    parser.add_argument("--gpus", type=positive_int, default=4, metavar="N", help="the machine's GPUs (default 4)")
     parser.add_argument("--plot", type=Path, help="a PNG: every job on its device over time, utilisation behind")
     args = parser.parse_args(argv)
     jobs = read_jobs(args.tables)
