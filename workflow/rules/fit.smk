@@ -28,10 +28,10 @@ rule fit_avatar:
         "results/{dataset}/{subject}/{variant}/logs/fit.log",
     benchmark:
         "results/{dataset}/{subject}/{variant}/benchmarks/fit.tsv"
+    priority: 1
     conda:
         conda_env("fit_avatar")
     threads: preset_threads("fit_avatar")
-    priority: 1
     resources:
         **preset_resources("fit_avatar"),
     params:
