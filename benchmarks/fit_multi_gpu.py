@@ -37,7 +37,9 @@ pinned to its own share of the cores (`pig fit --pin-cpus`; run33: a rank's host
 process's, 48.5 ms for 1157 kernels against 42.3 for 1988).
 
 `--parity ITERATIONS` (with `--repeats R`): R fits of that many iterations per GPU count, each ending with the
-held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick).
+held-out novel-view PSNR, printed per run with each count's spread (the 1-GPU run-to-run spread is the yardstick),
+and each other count's verdict against 1 GPU (`parity_verdict`: its mean inside the 1-GPU range and within two
+standard errors of the 1-GPU mean; run45's two runs a count could not decide it, NOTES).
 
 NVLink multicast stays off in this benchmark's processes (it must on the GPU machines this project measures on):
 NCCL's NVLS collectives (NCCL_NVLS_ENABLE=0), torch's symmetric-memory multicast (TORCH_SYMM_MEM_DISABLE_MULTICAST=1)
@@ -194,6 +196,21 @@ def rank_hooks(out: str, warmup: int, iterations: int, profile: int, kernels: in
 
     probe = RankProbe(out, warmup, iterations, profile, rank, kernels)
     return RankHooks(on_iteration=probe, phase=probe.phase, on_reducer=probe.reducer)
+
+
+def parity_verdict(reference: list[float], values: list[float]) -> str:
+    """The parity rule fixed before hold C3 (issue 42): the runs' mean inside the 1-GPU runs' range, and the
+    difference of the means within two of its standard errors (Welch: each count's own sample variance)."""
+    difference = statistics.mean(values) - statistics.mean(reference)
+    inside = min(reference) <= statistics.mean(values) <= max(reference)
+    verdict = f"difference of means {difference:+.3f} dB, mean {'inside' if inside else 'outside'} the 1-GPU range"
+    if min(len(reference), len(values)) < 2:
+        return verdict + "; standard error needs two runs of each: parity not decided"
+    error = (statistics.variance(reference) / len(reference) + statistics.variance(values) / len(values)) ** 0.5
+    within = abs(difference) <= 2 * error
+    holds = inside and within
+    return (verdict + f", standard error {error:.3f} dB ({abs(difference) / error if error else float('inf'):.2f} "
+            f"of them): parity {'holds' if holds else 'not shown'}")
 
 
 def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, seed: int, shard_solves: bool,
@@ -374,10 +391,16 @@ def main(argv=None) -> int:
         print("|---|---|---|---|---|")
         for r in sorted(records, key=lambda r: (r["gpus"], r["name"])):
             print(f"| {r['gpus']} | {r['name']} | {r['heldout_psnr']:.3f} | {r['train_s']:.0f} | {r['fit_s']:.0f} |")
-        for kind in sorted({(r["gpus"], r.get("sharded", False)) for r in records}):
-            values = [r["heldout_psnr"] for r in records if (r["gpus"], r.get("sharded", False)) == kind]
+        kinds = {kind: [r["heldout_psnr"] for r in records if (r["gpus"], r.get("sharded", False)) == kind]
+                 for kind in sorted({(r["gpus"], r.get("sharded", False)) for r in records})}
+        for kind, values in kinds.items():
             print(f"{label({'gpus': kind[0], 'sharded': kind[1]})}: mean {statistics.mean(values):.3f} dB, spread "
                   f"(max - min) {max(values) - min(values):.3f} dB over {len(values)} run(s)")
+        reference = kinds.get((1, False), [])
+        for kind, values in kinds.items():
+            if kind != (1, False) and reference:
+                print(f"{label({'gpus': kind[0], 'sharded': kind[1]})} against 1 GPU: "
+                      f"{parity_verdict(reference, values)}")
         return 0
 
     plan = scaling_runs(args.workdir) if everything else runs(args.gpus, args.shard_solves)

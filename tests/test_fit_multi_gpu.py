@@ -419,3 +419,20 @@ def test_collect_without_any_finished_run_says_so(tmp_path, capsys):
     assert "no finished scaling run" in capsys.readouterr().err
     assert fit_multi_gpu.main(["--collect", "--workdir", str(tmp_path / "none")]) == 1
     assert "no scaling run folder" in capsys.readouterr().err
+
+
+def test_parity_verdict_against_welch_by_hand():
+    # means 2 and 3; sample variances 2 and 2; standard error sqrt(2/2 + 2/2) = sqrt(2); 3 is the range's top
+    assert fit_multi_gpu.parity_verdict([1.0, 3.0], [2.0, 4.0]) == (
+        "difference of means +1.000 dB, mean inside the 1-GPU range, standard error 1.414 dB (0.71 of them): "
+        "parity holds")
+    # means 1.1 and 1.5, above the range [1.0, 1.2]: not parity, though only 0.78 standard errors away
+    assert fit_multi_gpu.parity_verdict([1.0, 1.2], [1.0, 2.0]) == (
+        "difference of means +0.400 dB, mean outside the 1-GPU range, standard error 0.510 dB (0.78 of them): "
+        "parity not shown")
+    # inside the range [1, 2] but 7.1 standard errors away: mean 10/9, variance 1/9 over 9 runs, so the error 1/9
+    reference = [1.0] * 8 + [2.0]
+    assert fit_multi_gpu.parity_verdict(reference, [1.9, 1.9, 1.9]) == (
+        "difference of means +0.789 dB, mean inside the 1-GPU range, standard error 0.111 dB (7.10 of them): "
+        "parity not shown")
+    assert fit_multi_gpu.parity_verdict([28.0], [28.0, 28.1]).endswith("parity not decided")

@@ -424,6 +424,40 @@ def test_batched_iteration_loss_equals_the_per_batch_loss(twin_avatars):
         assert (fast_grads[name] - grad).abs().max() <= 1e-6 * scale + 1e-12, name
 
 
+@pytest.mark.parametrize("form", ["mmlphuman", "full"])
+def test_per_batch_loss_draws_the_lpips_views_of_the_whole_iteration(twin_avatars, form):
+    """The LPIPS term on 4 of an iteration's 6 views (MMLPHuman's random views; its form with random windows): the
+    loss per timestep draws the views and windows once for the iteration, as the loss of all views at once does,
+    not 4 of each timestep's 3 (that is, all of them), and divides by the iteration's count of the views drawn
+    (those with a mask, "mmlphuman"; one drawn view's mask is empty). Found by benchmarks/parity_trajectory.py: a
+    `pig fit --gpus 2` on the CPU parted from the one-process fit at its first step. Bound: float32 rounding of the
+    same terms in other batch sizes, 1e-5 relative (measured: 2.2e-7 on L1, 0 on LPIPS and SSIM)."""
+    from pig.avatar.losses import lpips_term
+    from pig.render.api import RasterizerConfig
+
+    model = twin_avatars[0]
+    views = [[_view_batch(step, 3, 40, 36, seed)] for seed, step in enumerate((0, 2))]
+    views[1][0].masks[0] = False
+    batch = TrainingBatch(iteration=0, lod=0, timesteps=[0, 2], views=views, wait_s=0.0)
+    cfg = FitConfig(weight_lpips=2.0, lpips_weights="random", lpips_net="alex", lpips_form=form, lpips_crop=32,
+                    lpips_views=4, lpips_patches_from=0.0, lpips_start=0.0, band_radius_px=2.0,
+                    band_reference_height=36)
+    background = torch.tensor([0.2, 0.3, 0.4])
+    loss = LossTerms(cfg, background, lpips_term(cfg)[0], compiled=False)
+    results = {}
+    for batched in (True, False):
+        loss.at(0, 0.5)
+        terms = iteration_loss(model, batch, loss, RasterizerConfig(backend="cpu"), background, batched,
+                               lambda name: nullcontext())
+        results[batched] = {k: v.detach() for k, v in terms.items()}
+    loss.at(0, 0.5)
+    assert len(loss.draw(6)[0]) == 4  # the draw that both made
+    assert sorted(results[True]) == sorted(results[False]) == ["l1", "lpips", "ssim", "total"]
+    assert results[True]["lpips"] > 0
+    for key, value in results[True].items():
+        torch.testing.assert_close(results[False][key], value, rtol=1e-5, atol=0, msg=key)
+
+
 @pytest.mark.parametrize("batched", [True, False])
 def test_iteration_loss_with_the_loaders_bands_equals_the_devices(twin_avatars, batched):
     """`fit.host_band`: the views carry their band (as the loader threads compute it, with OpenCV) and the loss

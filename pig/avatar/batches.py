@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
+import zlib
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -73,6 +74,18 @@ class Picks:
     steps: list[tuple[int, list[str]]]
     share: ViewShare | None = None
 
+    def whole(self) -> ViewShare:
+        """The share of one process that trains on all of these picks: every view at its place in their order
+        (timesteps, then each timestep's cameras), the order in which the LPIPS term draws its views."""
+        places = [(k, cam) for k, (_, cams) in enumerate(self.steps) for cam in cams]
+        return ViewShare(tuple((k, cam, position) for position, (k, cam) in enumerate(places)), len(places),
+                         picks_digest(self))
+
+
+def picks_digest(picks: Picks) -> int:
+    """A checksum of an iteration's picks (LOD, timesteps, cameras), to check that every rank drew the same."""
+    return zlib.crc32(repr((picks.lod, picks.steps)).encode())
+
 
 @dataclass
 class TrainingBatch:
@@ -83,7 +96,15 @@ class TrainingBatch:
     timesteps: list[int]
     views: list[list[ViewBatch]]  # per timestep, grouped by image size
     wait_s: float  # how long the caller blocked for this batch
-    share: ViewShare | None = None  # Picks.share
+    share: ViewShare | None = None  # Picks.share, or the whole picks' (Picks.whole) in one process
+
+    def places(self) -> tuple[dict[tuple[int, str], int], int]:
+        """({(index into `timesteps`, camera): place among the iteration's views}, the iteration's view count):
+        `share`'s, or without one the views in the order of `views`."""
+        if self.share is not None:
+            return {(k, cam): position for k, cam, position in self.share.places}, self.share.total
+        order = [(k, cam) for k, step_batches in enumerate(self.views) for vb in step_batches for cam in vb.cameras]
+        return {pair: position for position, pair in enumerate(order)}, len(order)
 
     def timestep_tensor(self, device: torch.device) -> torch.Tensor:
         """`timesteps` (K,) int64 on `device` (host_to_device: a tensor of the list moved there would be a blocking
@@ -276,4 +297,4 @@ class TrainingBatches:
         picks, staged = self._staged.pop(iteration)
         views = self.source.views(staged)
         return TrainingBatch(iteration, picks.lod, [step for step, _ in picks.steps], views, time.perf_counter() - started,
-                             picks.share)
+                             picks.whole() if picks.share is None else picks.share)

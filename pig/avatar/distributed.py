@@ -32,7 +32,6 @@ pig.avatar.parallel_fit.
 from __future__ import annotations
 
 import time
-import zlib
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from typing import Callable
@@ -41,7 +40,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare, host_to_device
+from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare, host_to_device, picks_digest
 from pig.field.lattice_solve import LatticeSystem
 from pig.field.precondition import PreconditionedTensor
 from pig.render.api import render_timesteps
@@ -54,11 +53,6 @@ def split_pairs(count: int, world: int) -> list[range]:
     if not 1 <= world <= count:
         raise ValueError(f"split_pairs: {count} views cannot be split over {world} processes (each needs one)")
     return [range(r * count // world, (r + 1) * count // world) for r in range(world)]
-
-
-def picks_digest(picks: Picks) -> int:
-    """A checksum of an iteration's picks (LOD, timesteps, cameras), to check that every rank drew the same."""
-    return zlib.crc32(repr((picks.lod, picks.steps)).encode())
 
 
 def shard_picks(picks: Picks, rank: int, world: int) -> Picks:
@@ -351,10 +345,38 @@ def replica_digest(model: torch.nn.Module) -> int:
     return int(total)
 
 
+def lpips_shares(loss, total: int, parts: list[tuple[np.ndarray, torch.Tensor]],
+                 sum_count: Callable[[torch.Tensor], object]) -> Callable[[np.ndarray], LossShare]:
+    """The LPIPS term's random views and windows of an iteration's `total` views, drawn once (LossTerms.draw) as
+    one evaluation of them all draws them, and a function from the places of some of them (among the iteration's
+    views) to their LossShare. `parts`: (places, masks) of each evaluation to come, whose views with a mask among those drawn
+    count towards the "mmlphuman" form's divisor, summed over the ranks by `sum_count` (Parallel.sum_count; in one
+    process the count itself)."""
+    pick, offsets = loss.draw(total) if loss.lpips_active else (None, None)
+    seen = np.arange(total) if pick is None else pick  # the iteration's views that the LPIPS term sees
+    count = None
+    if loss.lpips_active and loss.cfg.lpips_form == "mmlphuman":  # its divisor: the LPIPS views with a mask
+        mine = torch.zeros((), device=parts[0][1].device)
+        for positions, masks in parts:
+            sees = host_to_device(np.isin(positions, seen), masks.device)
+            mine = mine + (masks.flatten(1).any(1) & sees).sum()
+        count = sum_count(mine)
+    elif loss.lpips_active:
+        count = float(len(seen))
+
+    def share_of(positions: np.ndarray) -> LossShare:
+        rows = np.flatnonzero(np.isin(positions, seen))
+        windows = None if offsets is None else offsets[np.searchsorted(seen, positions[rows])]
+        return LossShare(len(positions) / total, None if pick is None else rows, windows, count)
+
+    return share_of
+
+
 def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tensor, phase, parallel: Parallel
                ) -> dict[str, torch.Tensor]:
     """This rank's part of Eq. 15 for its part of an iteration's views (`batch.share`), whose sum over the ranks is
-    pig.avatar.training.iteration_loss of the whole iteration's views in one evaluation (`fit.batched_render`).
+    pig.avatar.training.iteration_loss of the whole iteration's views (with `fit.batched_render` or without: either
+    draws the LPIPS term's views and windows once for the iteration, `lpips_shares`).
 
     The rank's timesteps that have as many views of one size render in one rasterizer call; the loss takes each
     image size's views in one evaluation."""
@@ -365,7 +387,7 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
     for k, step_batches in enumerate(batch.views):
         for vb in step_batches:
             groups.setdefault((vb.width, vb.height, len(vb.cameras)), []).append((k, vb))
-    place = {(k, cam): position for k, cam, position in share.places}
+    place, _ = batch.places()
     by_size: dict[tuple[int, int], list] = {}
     with phase("render"):
         for (width, height, _), members in groups.items():
@@ -376,28 +398,15 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
             for (k, vb), color in zip(members, out.color):
                 by_size.setdefault((width, height), []).append(([place[(k, c)] for c in vb.cameras], color, vb))
     with phase("loss"):
-        pick, offsets = loss.draw(share.total) if loss.lpips_active else (None, None)
-        seen = np.arange(share.total) if pick is None else pick  # the iteration's views that the LPIPS term sees
-        count = None
-        if loss.lpips_active and loss.cfg.lpips_form == "mmlphuman":  # its divisor: the LPIPS views with a mask
-            mine = torch.zeros((), device=background.device)
-            for parts in by_size.values():
-                for positions, _, vb in parts:
-                    sees = host_to_device(np.isin(positions, seen), vb.masks.device)
-                    mine = mine + (vb.masks.flatten(1).any(1) & sees).sum()
-            count = parallel.sum_count(mine)
-        elif loss.lpips_active:
-            count = float(len(seen))
+        parts = [(np.asarray(positions), vb.masks) for size in by_size.values() for positions, _, vb in size]
+        share_of = lpips_shares(loss, share.total, parts, parallel.sum_count)
         terms: dict[str, torch.Tensor] = {}
         for (width, height), parts in sorted(by_size.items()):
             positions = np.concatenate([np.asarray(p) for p, _, _ in parts])
             render = torch.cat([color for _, color, _ in parts])
             images, masks = (torch.cat([getattr(vb, name) for _, _, vb in parts]) for name in ("images", "masks"))
             bands = None if parts[0][2].bands is None else torch.cat([vb.bands for _, _, vb in parts])
-            rows = np.flatnonzero(np.isin(positions, seen))
-            windows = None if offsets is None else offsets[np.searchsorted(seen, positions[rows])]
-            part = loss(render, images, masks, height, bands,
-                        LossShare(len(positions) / share.total, None if pick is None else rows, windows, count))
+            part = loss(render, images, masks, height, bands, share_of(positions))
             for key, value in part.items():
                 terms[key] = terms.get(key, 0) + value
     return terms

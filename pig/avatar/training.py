@@ -37,7 +37,7 @@ from pig.avatar.batches import Sampler, TrainingBatch, TrainingBatches, ViewSour
 from pig.avatar.build import body_model_npz, build_avatar, build_optimizers
 from pig.avatar.checkpoint import load_training_state, save_checkpoint
 from pig.avatar.config import AvatarConfig
-from pig.avatar.distributed import Parallel, ShardedSampler, SilentProgress, SolveShards, shard_loss
+from pig.avatar.distributed import Parallel, ShardedSampler, SilentProgress, SolveShards, lpips_shares, shard_loss
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.fit_progress import TENSORBOARD_DIR, FitProgress, tensorboard_writer
 from pig.avatar.losses import apply_band, band_radius, boundary_band, image_loss, lpips_term, lpips_views
@@ -252,17 +252,20 @@ def iteration_loss(model, batch: TrainingBatch, loss: LossTerms, raster: Rasteri
                                    backend=raster.backend, max_pairs=raster.max_pairs)
         with phase("loss"):
             return loss(out.color.flatten(0, 1), images, masks, height, bands)
-    num_views = sum(len(vb.cameras) for step_batches in batch.views for vb in step_batches)
+    # A loss evaluation per view batch, each its views' part of the iteration's mean; the LPIPS term's views and
+    # windows drawn once for the iteration, as the evaluation of all views above draws them.
+    place, total = batch.places()
+    parts = [(k, np.array([place[(k, cam)] for cam in vb.cameras]), vb)
+             for k, step_batches in enumerate(batch.views) for vb in step_batches]
+    share_of = lpips_shares(loss, total, [(positions, vb.masks) for _, positions, vb in parts], lambda count: count)
     totals: dict[str, torch.Tensor] = {}
-    for k, step_batches in enumerate(batch.views):
-        for vb in step_batches:
-            with phase("render"):
-                out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
-                                       vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
-            with phase("loss"):
-                terms = loss(out.color, vb.images, vb.masks, vb.height, vb.bands)
-                for key, value in terms.items():
-                    totals[key] = totals.get(key, 0) + value * (len(vb.cameras) / num_views)
+    for k, positions, vb in parts:
+        with phase("render"):
+            out = render_gaussians(g.means[k], g.quats[k], g.scales[k], g.opacities[k], g.sh[k], vb.viewmats, vb.Ks,
+                                   vb.width, vb.height, background, backend=raster.backend, max_pairs=raster.max_pairs)
+        with phase("loss"):
+            for key, value in loss(out.color, vb.images, vb.masks, vb.height, vb.bands, share_of(positions)).items():
+                totals[key] = totals.get(key, 0) + value
     return totals
 
 

@@ -1,0 +1,1 @@
+CUDA_VISIBLE_DEVICES=0 python3 benchmarks/fit_multi_gpu.py --workdir /tmp/mg --gpus 1 --parity 3000 --repeats 1 > $Q/parity_1gpu_a.txt 2>&1 & sleep 5; CUDA_VISIBLE_DEVICES=1 python3 benchmarks/fit_multi_gpu.py --workdir /tmp/mg --gpus 1 --parity 3000 --repeats 1 > $Q/parity_1gpu_b.txt 2>&1; wait

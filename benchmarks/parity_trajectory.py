@@ -1,0 +1,135 @@
+"""Does a data-parallel fit follow the one-process fit over many steps, or only over one? (issue 42, CPU)
+
+The gloo parity test (tests/test_fit_parallel.py) checks one step. Over a whole fit, float rounding alone parts two
+trajectories (gsplat's and the grid's scatter-adds on the GPU; the order of a sum anywhere), so two fits of one seed
+end apart, and a parity figure of a few fits cannot tell a rounding-only difference from a systematic one (a random
+draw that the ranks do not share, a view counted twice at some iteration). This tells them apart on the CPU, where a
+fit is bit-identical run to run: the same fit (the `test` preset's model; the batch of the parity test, 3 timesteps x
+2 views, with the LPIPS term on random weights in MMLPHuman's form) as
+- `1 process`: the reference, one torch thread;
+- `1 process, 2 threads`: a rounding-only perturbation (other blockings of the parallel sums, nothing else);
+- `2 processes`: `pig fit --gpus 2` on the CPU (gloo), one thread each;
+- `seed 1`: one process, another seed (what independent fits differ by).
+Per logged iteration, each run's loss against the reference's, |a - b| / b; at the end the held-out PSNR and how far
+each avatar's tensors are from the reference's (the largest difference over a tensor's largest value). A
+rounding-only difference starts at ~1e-7 and grows as the perturbed run's does; a systematic one jumps at the
+iteration where it happens.
+
+    python benchmarks/parity_trajectory.py --workdir /tmp/traj --iterations 300
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import sys
+from pathlib import Path
+
+import torch
+import yaml
+
+from pig.avatar.parallel_fit import fit_parallel
+from pig.avatar.training import fit
+from pig.config import load_preset
+from pig.data.synthetic import SyntheticConfig, generate_capture
+from pig.stages.preprocess import main as preprocess
+
+# The parity test's batch and LPIPS term (tests/test_fit_parallel.py, STEP_FIT), over a whole fit.
+FIT = dict(timesteps=3, views=2, weight_lpips=2.0, lpips_weights="random", lpips_net="alex", lpips_form="mmlphuman",
+           lpips_crop=32, lpips_views=4, lpips_patches_from=0.0, lpips_start=0.0, log_every=1,
+           checkpoint_minutes=10**6)
+RUNS = ("1 process", "1 process, 2 threads", "2 processes", "seed 1")
+
+
+def capture(workdir: Path, cameras: int, frames: int, size: int) -> Path:
+    """The preprocessed synthetic capture under `workdir`, made once."""
+    out = workdir / "capture"
+    if not (out / "cameras.json").exists():
+        raw = generate_capture(workdir / "raw", SyntheticConfig(cameras=cameras, frames=frames, width=size, height=size,
+                                                                workers=1), progress=False)
+        preprocess(["--input", str(raw), "--output", str(out), "--preset", "test", "--format", "thuman4",
+                    "--body-model", str(raw / "body_model.npz"), "--no-progress"])
+    return out
+
+
+def write_preset(workdir: Path, iterations: int, seed: int, overrides: dict) -> str:
+    preset = load_preset("test")
+    preset.pop("_path")
+    preset["fit"].update(FIT, **overrides, iterations=iterations, eval_every=iterations, seed=seed)
+    path = workdir / f"preset_seed{seed}.yaml"
+    path.write_text(yaml.safe_dump(preset))
+    return str(path)
+
+
+def run(name: str, capture_dir: Path, workdir: Path, iterations: int, overrides: dict) -> Path:
+    """Fit `name`'s way into its own folder, named by the run and the overrides (kept: a finished run is not fitted
+    again)."""
+    tag = hashlib.sha1(yaml.safe_dump(overrides).encode()).hexdigest()[:8] if overrides else "parity"
+    out = workdir / f"{name.replace(' ', '_').replace(',', '')}_{iterations}_{tag}"
+    if (out / "avatar.pt").exists():
+        return out
+    preset = write_preset(workdir, iterations, 1 if name == "seed 1" else 0, overrides)
+    if name == "2 processes":
+        fit_parallel(capture_dir, out, preset, "pig", 2, "cpu", progress_s=1e6, cores=2)
+    else:
+        fit(capture_dir, out, preset, threads=2 if "2 threads" in name else 1, progress_s=1e6)
+    return out
+
+
+def losses(folder: Path) -> dict[int, float]:
+    with open(folder / "train_log.csv", newline="") as file:
+        return {int(r["iteration"]): float(r["loss"]) for r in csv.DictReader(file) if r["loss"]}
+
+
+def heldout(folder: Path) -> float:
+    with open(folder / "train_log.csv", newline="") as file:
+        return [float(r["heldout_psnr"]) for r in csv.DictReader(file) if r["heldout_psnr"]][-1]
+
+
+def tensor_distance(a: Path, b: Path) -> float:
+    """Largest |a - b| over the tensor's largest |b|, over the avatars' floating-point tensors."""
+    first, second = (torch.load(f / "avatar.pt", map_location="cpu", weights_only=True)["model"] for f in (a, b))
+    return max(((first[k] - v).abs().max() / v.abs().max().clamp_min(1e-30)).item()
+               for k, v in second.items() if v.is_floating_point() and v.numel())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--workdir", type=Path, required=True)
+    parser.add_argument("--iterations", type=int, default=300)
+    parser.add_argument("--cameras", type=int, default=6)
+    parser.add_argument("--frames", type=int, default=6)
+    parser.add_argument("--size", type=int, default=64, help="image width and height, pixels")
+    parser.add_argument("--fit", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="fit settings over the parity batch's (YAML values), e.g. weight_lpips=0")
+    parser.add_argument("--runs", nargs="+", choices=RUNS, default=list(RUNS), help="the first is the reference")
+    args = parser.parse_args(argv)
+    overrides = {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in args.fit)}
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    capture_dir = capture(args.workdir, args.cameras, args.frames, args.size)
+    runs = args.runs
+    folders = {name: run(name, capture_dir, args.workdir, args.iterations, overrides) for name in runs}
+    reference = losses(folders[runs[0]])
+    curves = {name: losses(folder) for name, folder in folders.items()}
+    marks = sorted({i for i in (1, 2, 3, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, args.iterations)
+                    if i in reference})
+    print(f"Loss against the one-process fit's, |a - b| / b, {args.iterations} iterations, capture {args.cameras} "
+          f"cameras x {args.frames} frames at {args.size} px")
+    print("| iteration | " + " | ".join(runs[1:]) + " |")
+    print("|---|" + "---|" * (len(runs) - 1))
+    for i in marks:
+        print(f"| {i} | " + " | ".join(f"{abs(curves[n][i] - reference[i]) / reference[i]:.1e}" for n in runs[1:])
+              + " |")
+    first = {n: next((i for i in sorted(reference) if curves[n].get(i) != reference[i]), None) for n in runs[1:]}
+    print("first iteration whose loss differs: " + "; ".join(f"{n}: {first[n]}" for n in runs[1:]))
+    print("\n| run | held-out PSNR dB | against the reference dB | avatar tensors: largest difference / largest value |")
+    print("|---|---|---|---|")
+    base = heldout(folders[runs[0]])
+    for name, folder in folders.items():
+        print(f"| {name} | {heldout(folder):.3f} | {heldout(folder) - base:+.3f} | "
+              f"{tensor_distance(folder, folders[runs[0]]):.1e} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
