@@ -52,11 +52,10 @@ def capture(workdir: Path, cameras: int, frames: int, size: int) -> Path:
     return out
 
 
-def write_preset(workdir: Path, iterations: int, seed: int, overrides: dict) -> str:
+def write_preset(path: Path, iterations: int, seed: int, overrides: dict) -> str:
     preset = load_preset("test")
     preset.pop("_path")
     preset["fit"].update(FIT, **overrides, iterations=iterations, eval_every=iterations, seed=seed)
-    path = workdir / f"preset_seed{seed}.yaml"
     path.write_text(yaml.safe_dump(preset))
     return str(path)
 
@@ -68,7 +67,7 @@ def run(name: str, capture_dir: Path, workdir: Path, iterations: int, overrides:
     out = workdir / f"{name.replace(' ', '_').replace(',', '')}_{iterations}_{tag}"
     if (out / "avatar.pt").exists():
         return out
-    preset = write_preset(workdir, iterations, 1 if name == "seed 1" else 0, overrides)
+    preset = write_preset(out.with_name(out.name + ".yaml"), iterations, 1 if name == "seed 1" else 0, overrides)
     if name == "2 processes":
         fit_parallel(capture_dir, out, preset, "pig", 2, "cpu", progress_s=1e6, cores=2)
     else:
