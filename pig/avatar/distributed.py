@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare, host_to_device, picks_digest
+from pig.avatar.batches import Picks, Sampler, TrainingBatch, ViewShare, host_to_device
 from pig.field.lattice_solve import LatticeSystem
 from pig.field.precondition import PreconditionedTensor
 from pig.render.api import render_timesteps
@@ -56,18 +56,18 @@ def split_pairs(count: int, world: int) -> list[range]:
 
 
 def shard_picks(picks: Picks, rank: int, world: int) -> Picks:
-    """Rank `rank`'s part of an iteration's `picks` (split_pairs), with its ViewShare."""
-    pairs = [(step, cam) for step, cams in picks.steps for cam in cams]
-    mine = split_pairs(len(pairs), world)[rank]
+    """Rank `rank`'s part of an iteration's `picks` (split_pairs of the places of Picks.whole), with its ViewShare."""
+    whole = picks.whole()
+    mine = split_pairs(whole.total, world)[rank]
     steps: list[tuple[int, list[str]]] = []
     places = []
-    for position in mine:
-        step, cam = pairs[position]
+    for k, cam, position in whole.places[mine.start:mine.stop]:
+        step = picks.steps[k][0]
         if not steps or steps[-1][0] != step:
             steps.append((step, []))
         steps[-1][1].append(cam)
         places.append((len(steps) - 1, cam, position))
-    return Picks(picks.lod, steps, ViewShare(tuple(places), len(pairs), picks_digest(picks)))
+    return Picks(picks.lod, steps, ViewShare(tuple(places), whole.total, whole.digest))
 
 
 @dataclass(frozen=True)
@@ -380,14 +380,13 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
 
     The rank's timesteps that have as many views of one size render in one rasterizer call; the loss takes each
     image size's views in one evaluation."""
-    share = batch.share
     with phase("model"):
         g = model(batch.timestep_tensor(background.device), batch.lod)
     groups: dict[tuple[int, int, int], list[tuple[int, object]]] = {}
     for k, step_batches in enumerate(batch.views):
         for vb in step_batches:
             groups.setdefault((vb.width, vb.height, len(vb.cameras)), []).append((k, vb))
-    place, _ = batch.places()
+    place, total = batch.places()
     by_size: dict[tuple[int, int], list] = {}
     with phase("render"):
         for (width, height, _), members in groups.items():
@@ -398,15 +397,16 @@ def shard_loss(model, batch: TrainingBatch, loss, raster, background: torch.Tens
             for (k, vb), color in zip(members, out.color):
                 by_size.setdefault((width, height), []).append(([place[(k, c)] for c in vb.cameras], color, vb))
     with phase("loss"):
-        parts = [(np.asarray(positions), vb.masks) for size in by_size.values() for positions, _, vb in size]
-        share_of = lpips_shares(loss, share.total, parts, parallel.sum_count)
-        terms: dict[str, torch.Tensor] = {}
+        evaluations = []  # one an image size: (places, render, images, masks, bands, height)
         for (width, height), parts in sorted(by_size.items()):
             positions = np.concatenate([np.asarray(p) for p, _, _ in parts])
             render = torch.cat([color for _, color, _ in parts])
             images, masks = (torch.cat([getattr(vb, name) for _, _, vb in parts]) for name in ("images", "masks"))
             bands = None if parts[0][2].bands is None else torch.cat([vb.bands for _, _, vb in parts])
-            part = loss(render, images, masks, height, bands, share_of(positions))
-            for key, value in part.items():
+            evaluations.append((positions, render, images, masks, bands, height))
+        share_of = lpips_shares(loss, total, [(e[0], e[3]) for e in evaluations], parallel.sum_count)
+        terms: dict[str, torch.Tensor] = {}
+        for positions, render, images, masks, bands, height in evaluations:
+            for key, value in loss(render, images, masks, height, bands, share_of(positions)).items():
                 terms[key] = terms.get(key, 0) + value
     return terms
