@@ -1,4 +1,4 @@
-"""Does a data-parallel fit follow the one-process fit over many steps, or only over one? (issue 42, CPU)
+"""Does a data-parallel fit follow the one-process fit over many steps, or only over one? (issue 42)
 
 The gloo parity test (tests/test_fit_parallel.py) checks one step. Over a whole fit, float rounding alone parts two
 trajectories (gsplat's and the grid's scatter-adds on the GPU; the order of a sum anywhere), so two fits of one seed
@@ -9,13 +9,17 @@ fit is bit-identical run to run: the same fit (the `test` preset's model; the ba
 - `1 process`: the reference, one torch thread;
 - `1 process, 2 threads`: a rounding-only perturbation (other blockings of the parallel sums, nothing else);
 - `2 processes`: `pig fit --gpus 2` on the CPU (gloo), one thread each;
-- `seed 1`: one process, another seed (what independent fits differ by).
+- `seed 1`: one process, another seed (what independent fits differ by);
+- `1 process again`: the reference's fit once more (on the CPU the same bits; with `--device cuda`, where
+  `2 processes` runs on two GPUs over NCCL, the rounding-only perturbation: a GPU fit's scatter-adds sum in any order).
 Per logged iteration, each run's loss against the reference's, |a - b| / b; at the end the held-out PSNR and how far
 each avatar's tensors are from the reference's (the largest difference over a tensor's largest value). A
 rounding-only difference starts at ~1e-7 and grows as the perturbed run's does; a systematic one jumps at the
 iteration where it happens.
 
     python benchmarks/parity_trajectory.py --workdir /tmp/traj --iterations 300
+    python benchmarks/parity_trajectory.py --workdir /tmp/traj --device cuda --runs "1 process" "1 process again" \
+        "2 processes" --fit batched_render=true precision=bf16 --precond knn_solver=cg
 """
 from __future__ import annotations
 
@@ -38,7 +42,7 @@ from pig.stages.preprocess import main as preprocess
 FIT = dict(timesteps=3, views=2, weight_lpips=2.0, lpips_weights="random", lpips_net="alex", lpips_form="mmlphuman",
            lpips_crop=32, lpips_views=4, lpips_patches_from=0.0, lpips_start=0.0, log_every=1,
            checkpoint_minutes=10**6)
-RUNS = ("1 process", "1 process, 2 threads", "2 processes", "seed 1")
+RUNS = ("1 process", "1 process again", "1 process, 2 threads", "2 processes", "seed 1")
 
 
 def capture(workdir: Path, cameras: int, frames: int, size: int) -> Path:
@@ -55,23 +59,24 @@ def capture(workdir: Path, cameras: int, frames: int, size: int) -> Path:
 def write_preset(path: Path, iterations: int, seed: int, overrides: dict) -> str:
     preset = load_preset("test")
     preset.pop("_path")
-    preset["fit"].update(FIT, **overrides, iterations=iterations, eval_every=iterations, seed=seed)
+    preset["fit"].update(FIT, **overrides.get("fit", {}), iterations=iterations, eval_every=iterations, seed=seed)
+    preset["precond"].update(overrides.get("precond", {}))
     path.write_text(yaml.safe_dump(preset))
     return str(path)
 
 
-def run(name: str, capture_dir: Path, workdir: Path, iterations: int, overrides: dict) -> Path:
+def run(name: str, capture_dir: Path, workdir: Path, iterations: int, overrides: dict, device: str) -> Path:
     """Fit `name`'s way into its own folder, named by the run and the overrides (kept: a finished run is not fitted
     again)."""
-    tag = hashlib.sha1(yaml.safe_dump(overrides).encode()).hexdigest()[:8] if overrides else "parity"
+    tag = hashlib.sha1(yaml.safe_dump(overrides).encode()).hexdigest()[:8] if any(overrides.values()) else "parity"
     out = workdir / f"{name.replace(' ', '_').replace(',', '')}_{iterations}_{tag}"
     if (out / "avatar.pt").exists():
         return out
     preset = write_preset(out.with_name(out.name + ".yaml"), iterations, 1 if name == "seed 1" else 0, overrides)
     if name == "2 processes":
-        fit_parallel(capture_dir, out, preset, "pig", 2, "cpu", progress_s=1e6, cores=2)
+        fit_parallel(capture_dir, out, preset, "pig", 2, device, progress_s=1e6, cores=2 if device == "cpu" else None)
     else:
-        fit(capture_dir, out, preset, threads=2 if "2 threads" in name else 1, progress_s=1e6)
+        fit(capture_dir, out, preset, device=device, threads=2 if "2 threads" in name else 1, progress_s=1e6)
     return out
 
 
@@ -101,13 +106,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, default=64, help="image width and height, pixels")
     parser.add_argument("--fit", nargs="*", default=[], metavar="KEY=VALUE",
                         help="fit settings over the parity batch's (YAML values), e.g. weight_lpips=0")
-    parser.add_argument("--runs", nargs="+", choices=RUNS, default=list(RUNS), help="the first is the reference")
+    parser.add_argument("--precond", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="preconditioner settings over the `test` preset's, e.g. knn_solver=cg (its solves "
+                             "with a tolerance: a rank's share solved apart is not exactly the one-process solve)")
+    parser.add_argument("--runs", nargs="+", choices=RUNS, default=[r for r in RUNS if r != "1 process again"],
+                        help="the first is the reference")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                        help="cuda: `2 processes` on two GPUs (NCCL); a GPU fit is not bit-identical run to run "
+                             "(scatter-adds in any order), so `1 process again` is its rounding-only perturbation")
     args = parser.parse_args(argv)
-    overrides = {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in args.fit)}
+    overrides = {section: {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in items)}
+                 for section, items in (("fit", args.fit), ("precond", args.precond))}
     args.workdir.mkdir(parents=True, exist_ok=True)
     capture_dir = capture(args.workdir, args.cameras, args.frames, args.size)
     runs = args.runs
-    folders = {name: run(name, capture_dir, args.workdir, args.iterations, overrides) for name in runs}
+    folders = {name: run(name, capture_dir, args.workdir, args.iterations, overrides, args.device) for name in runs}
     reference = losses(folders[runs[0]])
     curves = {name: losses(folder) for name, folder in folders.items()}
     marks = sorted({i for i in (1, 2, 3, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, args.iterations)
