@@ -20,12 +20,15 @@ iteration where it happens.
     python benchmarks/parity_trajectory.py --workdir /tmp/traj --iterations 300
     python benchmarks/parity_trajectory.py --workdir /tmp/traj --device cuda --runs "1 process" "1 process again" \
         "2 processes" --fit batched_render=true precision=bf16 --precond knn_solver=cg
+    python3 benchmarks/parity_trajectory.py --workdir /tmp/traj --device cuda --preset paper --capture CAPTURE \
+        --runs "1 process" "1 process again" "2 processes" --iterations 300
 """
 from __future__ import annotations
 
 import argparse
 import csv
 import hashlib
+import os
 import sys
 from pathlib import Path
 
@@ -42,6 +45,8 @@ from pig.stages.preprocess import main as preprocess
 FIT = dict(timesteps=3, views=2, weight_lpips=2.0, lpips_weights="random", lpips_net="alex", lpips_form="mmlphuman",
            lpips_crop=32, lpips_views=4, lpips_patches_from=0.0, lpips_start=0.0, log_every=1,
            checkpoint_minutes=10**6)
+# Another preset keeps its own fit, with the LPIPS term on random weights and the loss of every iteration logged.
+PRESET_FIT = dict(lpips_weights="random", log_every=1, checkpoint_minutes=10**6)
 RUNS = ("1 process", "1 process again", "1 process, 2 threads", "2 processes", "seed 1")
 
 
@@ -56,23 +61,26 @@ def capture(workdir: Path, cameras: int, frames: int, size: int) -> Path:
     return out
 
 
-def write_preset(path: Path, iterations: int, seed: int, overrides: dict) -> str:
-    preset = load_preset("test")
+def write_preset(path: Path, name: str, iterations: int, seed: int, overrides: dict) -> str:
+    preset = load_preset(name)
     preset.pop("_path")
-    preset["fit"].update(FIT, **overrides.get("fit", {}), iterations=iterations, eval_every=iterations, seed=seed)
+    preset["fit"].update(FIT if name == "test" else PRESET_FIT, **overrides.get("fit", {}), iterations=iterations,
+                         eval_every=iterations, seed=seed)
     preset["precond"].update(overrides.get("precond", {}))
     path.write_text(yaml.safe_dump(preset))
     return str(path)
 
 
-def run(name: str, capture_dir: Path, workdir: Path, iterations: int, overrides: dict, device: str) -> Path:
-    """Fit `name`'s way into its own folder, named by the run and the overrides (kept: a finished run is not fitted
-    again)."""
-    tag = hashlib.sha1(yaml.safe_dump(overrides).encode()).hexdigest()[:8] if any(overrides.values()) else "parity"
+def run(name: str, capture_dir: Path, workdir: Path, preset_name: str, iterations: int, overrides: dict,
+        device: str) -> Path:
+    """Fit `name`'s way into its own folder, named by the run, the preset and the overrides (kept: a finished run is
+    not fitted again)."""
+    tag = (hashlib.sha1(yaml.safe_dump(overrides).encode()).hexdigest()[:8] if any(overrides.values()) else "parity")
+    tag = tag if preset_name == "test" else f"{preset_name}_{tag}"
     out = workdir / f"{name.replace(' ', '_').replace(',', '')}_{iterations}_{tag}"
     if (out / "avatar.pt").exists():
         return out
-    preset = write_preset(out.with_name(out.name + ".yaml"), iterations, 1 if name == "seed 1" else 0, overrides)
+    preset = write_preset(out.with_name(out.name + ".yaml"), preset_name, iterations, 1 if name == "seed 1" else 0, overrides)
     if name == "2 processes":
         fit_parallel(capture_dir, out, preset, "pig", 2, device, progress_s=1e6, cores=2 if device == "cpu" else None)
     else:
@@ -104,10 +112,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cameras", type=int, default=6)
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--size", type=int, default=64, help="image width and height, pixels")
+    parser.add_argument("--preset", default="test",
+                        help="`test`: its model with the parity test's batch (FIT); another (e.g. `paper`): its own fit, "
+                             "LPIPS on random weights, every iteration's loss logged")
+    parser.add_argument("--capture", type=Path, help="a preprocessed capture to fit (default: the synthetic capture "
+                        "of --cameras, --frames and --size, made under --workdir)")
     parser.add_argument("--fit", nargs="*", default=[], metavar="KEY=VALUE",
                         help="fit settings over the parity batch's (YAML values), e.g. weight_lpips=0")
     parser.add_argument("--precond", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="preconditioner settings over the `test` preset's, e.g. knn_solver=cg (its solves "
+                        help="preconditioner settings over the preset's, e.g. knn_solver=cg (its solves "
                              "with a tolerance: a rank's share solved apart is not exactly the one-process solve)")
     parser.add_argument("--runs", nargs="+", choices=RUNS, default=[r for r in RUNS if r != "1 process again"],
                         help="the first is the reference")
@@ -115,18 +128,22 @@ def main(argv: list[str] | None = None) -> int:
                         help="cuda: `2 processes` on two GPUs (NCCL); a GPU fit is not bit-identical run to run "
                              "(scatter-adds in any order), so `1 process again` is its rounding-only perturbation")
     args = parser.parse_args(argv)
+    if args.device == "cuda":  # the GPU machines here: NVLink multicast off (docs/gpu.md says why)
+        os.environ.update(NCCL_NVLS_ENABLE="0", TORCH_SYMM_MEM_DISABLE_MULTICAST="1", NVSHMEM_DISABLE_NVLS="1")
     overrides = {section: {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in items)}
                  for section, items in (("fit", args.fit), ("precond", args.precond))}
     args.workdir.mkdir(parents=True, exist_ok=True)
-    capture_dir = capture(args.workdir, args.cameras, args.frames, args.size)
+    capture_dir = args.capture or capture(args.workdir, args.cameras, args.frames, args.size)
     runs = args.runs
-    folders = {name: run(name, capture_dir, args.workdir, args.iterations, overrides, args.device) for name in runs}
+    folders = {name: run(name, capture_dir, args.workdir, args.preset, args.iterations, overrides, args.device)
+               for name in runs}
     reference = losses(folders[runs[0]])
     curves = {name: losses(folder) for name, folder in folders.items()}
     marks = sorted({i for i in (1, 2, 3, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, args.iterations)
                     if i in reference})
-    print(f"Loss against the one-process fit's, |a - b| / b, {args.iterations} iterations, capture {args.cameras} "
-          f"cameras x {args.frames} frames at {args.size} px")
+    shape = args.capture or f"{args.cameras} cameras x {args.frames} frames at {args.size} px"
+    print(f"Loss against the one-process fit's, |a - b| / b, {args.iterations} iterations of the `{args.preset}` "
+          f"preset, capture {shape}")
     print("| iteration | " + " | ".join(runs[1:]) + " |")
     print("|---|" + "---|" * (len(runs) - 1))
     for i in marks:
