@@ -80,7 +80,8 @@ def run(name: str, capture_dir: Path, workdir: Path, preset_name: str, iteration
     out = workdir / f"{name.replace(' ', '_').replace(',', '')}_{iterations}_{tag}"
     if (out / "avatar.pt").exists():
         return out
-    preset = write_preset(out.with_name(out.name + ".yaml"), preset_name, iterations, 1 if name == "seed 1" else 0, overrides)
+    seed = 1 if name == "seed 1" else 0
+    preset = write_preset(out.with_name(out.name + ".yaml"), preset_name, iterations, seed, overrides)
     if name == "2 processes":
         fit_parallel(capture_dir, out, preset, "pig", 2, device, progress_s=1e6, cores=2 if device == "cpu" else None)
     else:
@@ -113,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--size", type=int, default=64, help="image width and height, pixels")
     parser.add_argument("--preset", default="test",
-                        help="`test`: its model with the parity test's batch (FIT); another (e.g. `paper`): its own fit, "
-                             "LPIPS on random weights, every iteration's loss logged")
+                        help="`test`: its model with the parity test's batch (FIT); another (e.g. `paper`): its "
+                             "own fit, LPIPS on random weights, every iteration's loss logged")
     parser.add_argument("--capture", type=Path, help="a preprocessed capture to fit (default: the synthetic capture "
                         "of --cameras, --frames and --size, made under --workdir)")
     parser.add_argument("--fit", nargs="*", default=[], metavar="KEY=VALUE",
