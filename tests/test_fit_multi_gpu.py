@@ -1,6 +1,7 @@
 """benchmarks/fit_multi_gpu.py and benchmarks/kernel_profile.py: the kernel profile's interval arithmetic, whole and
 by phase, against a brute-force count on synthetic traces, its reading of a real (CPU) profiler trace, the phases'
-annotations in the profiled iterations only, and `--collect` over the run folders found, partial ones included."""
+annotations in the profiled iterations only, `--collect` over the run folders found, partial ones included, and the
+parity rules (fit_multi_gpu.py's over held-out PSNRs, parity_trajectory.py's over step-after-step losses)."""
 import functools
 import json
 import os
@@ -436,3 +437,28 @@ def test_parity_verdict_against_welch_by_hand():
         "difference of means +0.789 dB, mean inside the 1-GPU range, standard error 0.111 dB (7.10 of them): "
         "parity not shown")
     assert fit_multi_gpu.parity_verdict([28.0], [28.0, 28.1]).endswith("parity not decided")
+
+
+def test_systematic_verdict_of_the_step_after_step_comparison():
+    import parity_trajectory
+
+    reference = {1: 1.0, 50: 1.0, 100: 1.0, 200: 1.0, 300: 1.0}
+    rerun = {i: 1.0 + 1e-5 for i in reference}
+    # a term dropped: the first step 2e-4 off
+    assert parity_trajectory.systematic_verdict(reference, rerun, {**rerun, 1: 1.0 + 2e-4}).startswith(
+        "systematic: the first step's loss off by 2.0e-04")
+    # rounding at first, then 20x the rerun's distance at every checkpoint
+    far = {1: 1.0, **{i: 1.0 + 2e-4 for i in (50, 100, 200, 300)}}
+    assert parity_trajectory.systematic_verdict(reference, rerun, far).startswith("systematic: more than 10x")
+    # 20x at three checkpoints, 5x at one: rounding only, each ratio listed
+    assert parity_trajectory.systematic_verdict(reference, rerun, {**far, 200: 1.0 + 5e-5}) == (
+        "rounding only: first step off by 0.0e+00; against the rounding-only run 50: 20x, 100: 20x, 200: 5x, 300: 20x")
+    # a rounding-only run equal to the reference bit for bit: a difference above the floor counts as infinitely
+    # farther, one below it (1e-7, rounding on the CPU) does not
+    same = dict(reference)
+    assert parity_trajectory.systematic_verdict(reference, same, far).startswith("systematic: more than 10x")
+    assert parity_trajectory.systematic_verdict(reference, same, {i: 1.0 + 1e-7 for i in reference}).startswith(
+        "rounding only")
+    # a fit shorter than every checkpoint is judged on its first step alone
+    assert parity_trajectory.systematic_verdict({1: 1.0, 20: 1.0}, {1: 1.0, 20: 1.0}, {1: 1.0, 20: 1.1}) == (
+        "rounding only: first step off by 0.0e+00; against the rounding-only run -")
