@@ -13,7 +13,7 @@ import torch
 import yaml
 from torch._dynamo.utils import counters
 
-from pig.avatar.batches import TrainingBatch, ViewBatch
+from pig.avatar.batches import Picks, TrainingBatch, ViewBatch
 from pig.avatar.build import build_optimizers
 from pig.avatar.checkpoint import load_avatar
 from pig.avatar.decoders import AnchorDecoder
@@ -393,13 +393,20 @@ def _view_batch(step: int, cameras: int, width: int, height: int, seed: int) -> 
     return ViewBatch(step, [f"cam{c}" for c in range(cameras)], viewmats, Ks, images, masks, width, height)
 
 
+def _batch(lod: int, views: list[list[ViewBatch]]) -> TrainingBatch:
+    """One process's batch of `views` (per timestep), each view at its place in their order (Picks.whole)."""
+    picks = Picks(lod, [(step_batches[0].timestep, [cam for vb in step_batches for cam in vb.cameras])
+                        for step_batches in views])
+    return TrainingBatch(0, lod, [step for step, _ in picks.steps], views, 0.0, picks.whole())
+
+
 def test_batched_iteration_loss_equals_the_per_batch_loss(twin_avatars):
     """One render and one loss for all views against a loss per timestep weighted by its views: the same means,
     summed in another order; float32, bound 1e-6 relative on each term and of each gradient tensor's largest
     element (measured 7.8e-8 on L1, 0 on SSIM, 8.1e-8 on the total, 0 on the gradients)."""
     model = twin_avatars[0]
     views = [[_view_batch(step, 2, 20, 16, seed)] for seed, step in enumerate((0, 2))]
-    batch = TrainingBatch(iteration=0, lod=0, timesteps=[0, 2], views=views, wait_s=0.0)
+    batch = _batch(0, views)
     assert batch.uniform() is not None
     cfg = FitConfig(weight_lpips=0.0, band_radius_px=2.0, band_reference_height=16)
     background = torch.tensor([0.2, 0.3, 0.4])
@@ -438,7 +445,7 @@ def test_per_batch_loss_draws_the_lpips_views_of_the_whole_iteration(twin_avatar
     model = twin_avatars[0]
     views = [[_view_batch(step, 3, 40, 36, seed)] for seed, step in enumerate((0, 2))]
     views[1][0].masks[0] = False
-    batch = TrainingBatch(iteration=0, lod=0, timesteps=[0, 2], views=views, wait_s=0.0)
+    batch = _batch(0, views)
     cfg = FitConfig(weight_lpips=2.0, lpips_weights="random", lpips_net="alex", lpips_form=form, lpips_crop=32,
                     lpips_views=4, lpips_patches_from=0.0, lpips_start=0.0, band_radius_px=2.0,
                     band_reference_height=36)
@@ -477,7 +484,7 @@ def test_iteration_loss_with_the_loaders_bands_equals_the_devices(twin_avatars, 
             if host_band:
                 vb.bands = torch.from_numpy(np.stack([boundary_band_host(m.numpy(), loss.band_radius(vb.height))
                                                       for m in vb.masks]))
-        batch = TrainingBatch(iteration=0, lod=1, timesteps=[0, 2], views=views, wait_s=0.0)
+        batch = _batch(1, views)
         model.zero_grad(set_to_none=True)
         terms = iteration_loss(model, batch, loss, RasterizerConfig(backend="cpu"), background, batched,
                                lambda name: nullcontext())
@@ -491,7 +498,7 @@ def test_iteration_loss_with_the_loaders_bands_equals_the_devices(twin_avatars, 
 
 
 def test_uniform_batch_only_when_every_timestep_has_the_same_views():
-    same = TrainingBatch(0, 0, [0, 1], [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 2, 8, 6, 1)]], 0.0)
+    same = _batch(0, [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 2, 8, 6, 1)]])
     viewmats, Ks, images, masks, width, height, bands = same.uniform()
     assert viewmats.shape == (2, 2, 4, 4) and Ks.shape == (2, 2, 3, 3) and (width, height) == (8, 6)
     assert torch.equal(images, torch.cat([same.views[0][0].images, same.views[1][0].images]))
@@ -500,9 +507,9 @@ def test_uniform_batch_only_when_every_timestep_has_the_same_views():
     for step_batches in same.views:
         step_batches[0].bands = boundary_band(step_batches[0].masks, 1)
     assert torch.equal(same.uniform()[-1], torch.cat([same.views[0][0].bands, same.views[1][0].bands]))
-    fewer = TrainingBatch(0, 0, [0, 1], [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 1, 8, 6, 1)]], 0.0)
-    other_size = TrainingBatch(0, 0, [0, 1], [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 2, 8, 7, 1)]], 0.0)
-    two_sizes = TrainingBatch(0, 0, [0], [[_view_batch(0, 1, 8, 6, 0), _view_batch(0, 1, 9, 6, 1)]], 0.0)
+    fewer = _batch(0, [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 1, 8, 6, 1)]])
+    other_size = _batch(0, [[_view_batch(0, 2, 8, 6, 0)], [_view_batch(1, 2, 8, 7, 1)]])
+    two_sizes = _batch(0, [[_view_batch(0, 1, 8, 6, 0), _view_batch(0, 1, 9, 6, 1)]])
     assert fewer.uniform() is None and other_size.uniform() is None and two_sizes.uniform() is None
 
 

@@ -96,15 +96,11 @@ class TrainingBatch:
     timesteps: list[int]
     views: list[list[ViewBatch]]  # per timestep, grouped by image size
     wait_s: float  # how long the caller blocked for this batch
-    share: ViewShare | None = None  # Picks.share, or the whole picks' (Picks.whole) in one process
+    share: ViewShare  # Picks.share, or in one process the whole picks' (Picks.whole)
 
     def places(self) -> tuple[dict[tuple[int, str], int], int]:
-        """({(index into `timesteps`, camera): place among the iteration's views}, the iteration's view count):
-        `share`'s, or without one the views in the order of `views`."""
-        if self.share is not None:
-            return {(k, cam): position for k, cam, position in self.share.places}, self.share.total
-        order = [(k, cam) for k, step_batches in enumerate(self.views) for vb in step_batches for cam in vb.cameras]
-        return {pair: position for position, pair in enumerate(order)}, len(order)
+        """({(index into `timesteps`, camera): place among the iteration's views}, the iteration's view count)."""
+        return {(k, cam): position for k, cam, position in self.share.places}, self.share.total
 
     def timestep_tensor(self, device: torch.device) -> torch.Tensor:
         """`timesteps` (K,) int64 on `device` (host_to_device: a tensor of the list moved there would be a blocking
