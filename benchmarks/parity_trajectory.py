@@ -74,9 +74,10 @@ def write_preset(path: Path, name: str, iterations: int, seed: int, overrides: d
 
 def run(name: str, capture_dir: Path, workdir: Path, preset_name: str, iterations: int, overrides: dict,
         device: str) -> Path:
-    """Fit `name`'s way into its own folder, named by the run, the preset and the overrides (kept: a finished run is
-    not fitted again)."""
-    tag = (hashlib.sha1(yaml.safe_dump(overrides).encode()).hexdigest()[:8] if any(overrides.values()) else "parity")
+    """Fit `name`'s way into its own folder, named by the run, the preset, the overrides and a capture from elsewhere
+    (--capture) (kept: a finished run is not fitted again)."""
+    key = {**overrides, **({} if capture_dir == workdir / "capture" else {"capture": str(capture_dir.resolve())})}
+    tag = hashlib.sha1(yaml.safe_dump(key).encode()).hexdigest()[:8] if any(key.values()) else "parity"
     tag = tag if preset_name == "test" else f"{preset_name}_{tag}"
     out = workdir / f"{name.replace(' ', '_').replace(',', '')}_{iterations}_{tag}"
     if (out / "avatar.pt").exists():
