@@ -26,7 +26,6 @@ import sys
 from pathlib import Path
 
 import torch
-import yaml
 from torch.multiprocessing import start_processes
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -53,15 +52,11 @@ def make_capture(root: Path) -> Path:
 
 
 def write_preset(folder: Path, iterations: int, shard_solves: bool) -> str:
-    from pig.config import load_preset
+    from pig.config import derive_preset
 
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(COMPILED_FIT, iterations=iterations, shard_solves=shard_solves)
-    preset["precond"].update(COMPILED_PRECOND)
-    path = folder / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(folder / "preset.yaml", "test",
+                             fit={**COMPILED_FIT, "iterations": iterations, "shard_solves": shard_solves},
+                             precond=COMPILED_PRECOND))
 
 
 class _Recompiles(logging.Handler):

@@ -34,7 +34,7 @@ import numpy as np
 import yaml
 
 from pig.body.params import SmplxParams
-from pig.config import load_preset
+from pig.config import derive_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.stages.preprocess import main as preprocess
 
@@ -99,13 +99,9 @@ def tile_capture(source: Path, target: Path, frames: int) -> Path:
 
 
 def fit_profile(workdir: Path, profile: str, iterations: int, tag: str) -> Path:
-    data = load_preset(profile)
-    data.pop("_path")
     # No held-out evaluation or checkpoint inside the measured iterations.
-    data["fit"].update(iterations=iterations, eval_every=10**9, checkpoint_minutes=10**6)
-    path = workdir / f"profile_{tag}.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+    return derive_preset(workdir / f"profile_{tag}.yaml", profile,
+                         fit={"iterations": iterations, "eval_every": 10**9, "checkpoint_minutes": 10**6})
 
 
 def measure_fit(capture: Path, profile: Path, device: str, out: Path) -> dict:

@@ -30,9 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from pig.config import load_preset
+from pig.config import derive_preset, load_preset
 
 ROOT = Path(__file__).resolve().parent.parent
 SPLITS = ("novel_view", "novel_pose")
@@ -41,17 +40,13 @@ SPLITS = ("novel_view", "novel_pose")
 def cpu_preset(workdir: Path) -> Path:
     """The paper preset with a one-iteration CPU fit (1 view, 1 timestep, nothing compiled, no LPIPS term) and a CPU
     evaluation (the CPU compositor, 1 timing frame)."""
-    preset = load_preset("paper")
-    preset.pop("_path")
-    preset["fit"].update(iterations=1, views=1, timesteps=1, weight_lpips=0.0, eval_every=1000, eval_frames=1,
-                         checkpoint_minutes=0.0, precision="float32", compile=False, compile_posing=False,
-                         fused_adam=False, lpips_compile=False, loader_workers=2)
-    preset["precond"].update(knn_solver="factorized", cg_compile=False, cg_graphs=False)
-    preset["evaluate"].update(timing_frames=1, device="cpu")
-    preset["rasterizer"].update(backend="cpu")
-    path = workdir / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return path
+    return derive_preset(workdir / "preset.yaml", "paper",
+                         fit=dict(iterations=1, views=1, timesteps=1, weight_lpips=0.0, eval_every=1000, eval_frames=1,
+                                  checkpoint_minutes=0.0, precision="float32", compile=False, compile_posing=False,
+                                  fused_adam=False, lpips_compile=False, loader_workers=2),
+                         precond=dict(knn_solver="factorized", cg_compile=False, cg_graphs=False),
+                         evaluate=dict(timing_frames=1, device="cpu"),
+                         rasterizer=dict(backend="cpu"))
 
 
 def build(workdir: Path, cameras: int, frames: int, workers: int) -> tuple[Path, Path, Path]:

@@ -52,14 +52,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from data_scale import build_capture, tile_capture  # noqa: E402
 
 from pig.body.params import SmplxParams  # noqa: E402
 from pig.data.ground_truth import GT_MESHES  # noqa: E402
-from pig.config import load_preset  # noqa: E402
+from pig.config import derive_preset, load_preset  # noqa: E402
 
 CAMERAS, TRAIN_FRAMES, POSE_FRAMES = 24, 2000, 500  # config/datasets/thuman4.yaml
 HELD_OUT = "cam23"
@@ -169,14 +168,10 @@ class InceptionStandIn(torch.nn.Module):
 
 
 def write_preset(workdir: Path, preset: str, iterations: int, device: str, evaluate: dict) -> Path:
-    data = load_preset(preset)
-    data.pop("_path", None)
-    data.setdefault("fit", {}).update(iterations=iterations, eval_every=10**9, checkpoint_minutes=10**6,
-                                      weight_lpips=0.0)  # the fit only makes renders like a real fit's
-    data.setdefault("evaluate", {}).update(lpips_net="vgg", device=device, **evaluate)
-    path = workdir / "eval_scale_preset.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+    return derive_preset(workdir / "eval_scale_preset.yaml", preset,
+                         fit=dict(iterations=iterations, eval_every=10**9, checkpoint_minutes=10**6,
+                                  weight_lpips=0.0),  # the fit only makes renders like a real fit's
+                         evaluate=dict(lpips_net="vgg", device=device, **evaluate))
 
 
 def folder_bytes(path: Path) -> int:

@@ -24,9 +24,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
-from pig.config import load_preset
+from pig.config import derive_preset
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -38,10 +37,8 @@ def lever_fill(capture: Path, steps: int, rounds: int) -> None:
     import pig.avatar.training as training
 
     workdir = Path(tempfile.mkdtemp(prefix="pig_fit_levers_"))
-    preset = load_preset("cpu-demo")
-    preset.pop("_path")
-    preset["fit"].update(iterations=steps, eval_every=steps, probe_every=0, checkpoint_minutes=10**6)
-    (workdir / "preset.yaml").write_text(yaml.safe_dump(preset))
+    derive_preset(workdir / "preset.yaml", "cpu-demo",
+                  fit={"iterations": steps, "eval_every": steps, "probe_every": 0, "checkpoint_minutes": 10**6})
     chosen = training.use_deterministic_kernels
     seconds: dict[bool, list[float]] = {True: [], False: []}
     try:

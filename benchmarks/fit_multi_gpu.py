@@ -83,10 +83,9 @@ from pathlib import Path
 from typing import Callable
 
 import torch
-import yaml
 from torch._dynamo.utils import counters
 
-from pig.config import load_preset
+from pig.config import derive_preset
 from pig.data.capture import Capture
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -217,16 +216,11 @@ def write_preset(workdir: Path, name: str, iterations: int, eval_every: int, see
                  cg_lagged: bool = False, compile_mode: str = "default") -> Path:
     """The `paper` preset cut to `iterations`, LPIPS on random weights, no checkpoint inside the run; `cg_lagged`:
     precond.cg_lagged on (the anchors' CG without a blocking read); `compile_mode`: fit.compile_mode."""
-    preset = load_preset("paper")
-    preset.pop("_path")
-    preset["fit"].update(iterations=iterations, eval_every=eval_every, checkpoint_minutes=10**6, lpips_weights="random",
-                         seed=seed, shard_solves=shard_solves)
-    if cg_lagged:
-        preset["precond"]["cg_lagged"] = True
-    preset["fit"]["compile_mode"] = compile_mode
-    path = workdir / f"preset_{name}.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return path
+    return derive_preset(workdir / f"preset_{name}.yaml", "paper",
+                         fit={"iterations": iterations, "eval_every": eval_every, "checkpoint_minutes": 10**6,
+                              "lpips_weights": "random", "seed": seed, "shard_solves": shard_solves,
+                              "compile_mode": compile_mode},
+                         precond={"cg_lagged": True} if cg_lagged else {})
 
 
 def run_one(args) -> int:

@@ -43,7 +43,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
-import yaml
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
@@ -51,7 +50,7 @@ from torch.utils._pytree import tree_leaves
 sys.path.insert(0, str(Path(__file__).parent))
 from fit_gpu import MODULES  # noqa: E402
 
-from pig.config import load_preset  # noqa: E402
+from pig.config import derive_preset  # noqa: E402
 
 # Ops that make the host wait for a GPU's queue: their result's size or value is read on the host. A blocking copy of
 # host data to the device waits too, but is no op on the CPU (tests/test_fit_parallel.py's _BlockingCopies checks
@@ -268,18 +267,15 @@ def eager_op_us(repeats: int = 20000) -> tuple[float, float]:
 
 def write_preset(folder: Path, timesteps: int, views: int, iterations: int, shard_solves: bool) -> str:
     """The `paper` preset with the host-shaping switches kept and the sizes shrunk (module docstring)."""
-    preset = load_preset("paper")
-    preset.pop("_path")
-    preset["avatar"].update(num_anchors=1200, hidden_width=32)
-    preset["field"].update(resolutions=[4, 6, 8, 10, 12, 14])
-    preset["fit"].update(iterations=iterations, views=views, timesteps=timesteps, lpips_weights="random", lpips_crop=16,
-                         lpips_start=0.0, lpips_patches_from=0.0, eval_every=10**9, eval_frames=1, checkpoint_minutes=10**6,
-                         compile=False, compile_posing=False, lpips_compile=False, precision="float32", cpu_threads=1,
-                         view_cache=256, loader_workers=1, prefetch=2, shard_solves=shard_solves)
-    preset["precond"].update(cg_compile=False)
-    path = folder / f"preset_{timesteps}x{views}.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(
+        folder / f"preset_{timesteps}x{views}.yaml", "paper",
+        avatar=dict(num_anchors=1200, hidden_width=32),
+        field=dict(resolutions=[4, 6, 8, 10, 12, 14]),
+        fit=dict(iterations=iterations, views=views, timesteps=timesteps, lpips_weights="random", lpips_crop=16,
+                 lpips_start=0.0, lpips_patches_from=0.0, eval_every=10**9, eval_frames=1, checkpoint_minutes=10**6,
+                 compile=False, compile_posing=False, lpips_compile=False, precision="float32", cpu_threads=1,
+                 view_cache=256, loader_workers=1, prefetch=2, shard_solves=shard_solves),
+        precond=dict(cg_compile=False)))
 
 
 def make_capture(root: Path, size: int) -> Path:

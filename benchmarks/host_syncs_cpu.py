@@ -26,9 +26,8 @@ from pathlib import Path
 
 import torch
 import torch.distributed as dist
-import yaml
 
-from pig.config import load_preset
+from pig.config import derive_preset
 from pig.host_syncs import CPU_ONLY, HostSyncs
 
 # The `paper` preset's switches that shape a step's host work, on the `test` preset's sizes (module docstring).
@@ -49,13 +48,9 @@ def on_cuda(sync) -> bool:
 
 def write_preset(folder: Path, iterations: int, shard_solves: bool, precond: dict | None = None) -> str:
     """The `test` preset with PAPER_SWITCHES (and `precond` overrides), `iterations` long; its path."""
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(PAPER_SWITCHES["fit"], iterations=iterations, shard_solves=shard_solves)
-    preset["precond"].update(PAPER_SWITCHES["precond"], **(precond or {}))
-    path = folder / f"preset_{'shard' if shard_solves else 'one'}.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(folder / f"preset_{'shard' if shard_solves else 'one'}.yaml", "test",
+                             fit={**PAPER_SWITCHES["fit"], "iterations": iterations, "shard_solves": shard_solves},
+                             precond={**PAPER_SWITCHES["precond"], **(precond or {})}))
 
 
 class StepRecorder:

@@ -8,8 +8,9 @@ fit is bit-identical run to run: the same fit (the `test` preset's model; the ba
 2 views, with the LPIPS term on random weights in MMLPHuman's form) as
 - `1 process`: the reference, one torch thread;
 - `1 process, 2 threads`: a rounding-only perturbation (other blockings of the parallel sums, nothing else);
-- `2 processes`: `pig fit --gpus 2` on the CPU (gloo), one thread each;
-- `seed 1`: one process, another seed (what independent fits differ by);
+- `2 processes`: `pig fit --gpus 2` on the CPU (gloo), one thread each; `4 processes` the same with 4 ranks (the
+  count of run45-run46's 4-GPU fits: another split of the batch, a rank's share 5 of the `paper` batch's 20 pairs);
+- `seed 1`: one process, another seed (`--seed` plus 1: what independent fits differ by);
 - `1 process again`: the reference's fit once more (on the CPU the same bits; with `--device cuda`, where
   `2 processes` runs on two GPUs over NCCL, the rounding-only perturbation: a GPU fit's scatter-adds sum in any order).
 Per logged iteration, each run's loss against the reference's, |a - b| / b; at the end the held-out PSNR and how far
@@ -38,7 +39,7 @@ import yaml
 
 from pig.avatar.parallel_fit import fit_parallel
 from pig.avatar.training import fit
-from pig.config import load_preset
+from pig.config import derive_preset
 from pig.data.synthetic import SyntheticConfig, generate_capture
 from pig.stages.preprocess import main as preprocess
 
@@ -48,7 +49,7 @@ FIT = dict(timesteps=3, views=2, weight_lpips=2.0, lpips_weights="random", lpips
            checkpoint_minutes=10**6)
 # Another preset keeps its own fit, with the LPIPS term on random weights and the loss of every iteration logged.
 PRESET_FIT = dict(lpips_weights="random", log_every=1, checkpoint_minutes=10**6)
-RUNS = ("1 process", "1 process again", "1 process, 2 threads", "2 processes", "seed 1")
+RUNS = ("1 process", "1 process again", "1 process, 2 threads", "2 processes", "4 processes", "seed 1")
 
 
 def capture(workdir: Path, cameras: int, frames: int, size: int) -> Path:
@@ -63,29 +64,27 @@ def capture(workdir: Path, cameras: int, frames: int, size: int) -> Path:
 
 
 def write_preset(path: Path, name: str, iterations: int, seed: int, overrides: dict) -> str:
-    preset = load_preset(name)
-    preset.pop("_path")
-    preset["fit"].update(FIT if name == "test" else PRESET_FIT, **overrides.get("fit", {}), iterations=iterations,
-                         eval_every=iterations, seed=seed)
-    preset["precond"].update(overrides.get("precond", {}))
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    fit = {**(FIT if name == "test" else PRESET_FIT), **overrides.get("fit", {}), "iterations": iterations,
+           "eval_every": iterations, "seed": seed}
+    return str(derive_preset(path, name, fit=fit, precond=overrides.get("precond", {})))
 
 
 def run(name: str, capture_dir: Path, workdir: Path, preset_name: str, iterations: int, overrides: dict,
-        device: str) -> Path:
-    """Fit `name`'s way into its own folder, named by the run, the preset, the overrides and a capture from elsewhere
-    (--capture) (kept: a finished run is not fitted again)."""
-    key = {**overrides, **({} if capture_dir == workdir / "capture" else {"capture": str(capture_dir.resolve())})}
+        device: str, seed: int = 0) -> Path:
+    """Fit `name`'s way into its own folder, named by the run, the preset, the overrides, a capture from elsewhere
+    (--capture) and a seed other than 0 (kept: a finished run is not fitted again)."""
+    key = {**overrides, **({} if capture_dir == workdir / "capture" else {"capture": str(capture_dir.resolve())}),
+           **({"seed": seed} if seed else {})}
     tag = hashlib.sha1(yaml.safe_dump(key).encode()).hexdigest()[:8] if any(key.values()) else "parity"
     tag = tag if preset_name == "test" else f"{preset_name}_{tag}"
     out = workdir / f"{name.replace(' ', '_').replace(',', '')}_{iterations}_{tag}"
     if (out / "avatar.pt").exists():
         return out
-    seed = 1 if name == "seed 1" else 0
-    preset = write_preset(out.with_name(out.name + ".yaml"), preset_name, iterations, seed, overrides)
-    if name == "2 processes":
-        fit_parallel(capture_dir, out, preset, "pig", 2, device, progress_s=1e6, cores=2 if device == "cpu" else None)
+    preset = write_preset(out.with_name(out.name + ".yaml"), preset_name, iterations,
+                          seed + 1 if name == "seed 1" else seed, overrides)
+    if name.endswith(" processes"):
+        fit_parallel(capture_dir, out, preset, "pig", int(name.split()[0]), device, progress_s=1e6,
+                     cores=2 if device == "cpu" else None)
     else:
         fit(capture_dir, out, preset, device=device, threads=2 if "2 threads" in name else 1, progress_s=1e6)
     return out
@@ -148,8 +147,9 @@ def main(argv: list[str] | None = None) -> int:
                              "with a tolerance: a rank's share solved apart is not exactly the one-process solve)")
     parser.add_argument("--runs", nargs="+", choices=RUNS, default=[r for r in RUNS if r != "1 process again"],
                         help="the first is the reference")
+    parser.add_argument("--seed", type=int, default=0, help="every run's seed (`seed 1`: this plus 1)")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
-                        help="cuda: `2 processes` on two GPUs (NCCL); a GPU fit is not bit-identical run to run "
+                        help="cuda: `N processes` on N GPUs (NCCL); a GPU fit is not bit-identical run to run "
                              "(scatter-adds in any order), so `1 process again` is its rounding-only perturbation")
     args = parser.parse_args(argv)
     if args.device == "cuda":  # the GPU machines here: NVLink multicast off (docs/gpu.md says why)
@@ -159,8 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     args.workdir.mkdir(parents=True, exist_ok=True)
     capture_dir = args.capture or capture(args.workdir, args.cameras, args.frames, args.size)
     runs = args.runs
-    folders = {name: run(name, capture_dir, args.workdir, args.preset, args.iterations, overrides, args.device)
-               for name in runs}
+    folders = {name: run(name, capture_dir, args.workdir, args.preset, args.iterations, overrides, args.device,
+                         args.seed) for name in runs}
     reference = losses(folders[runs[0]])
     curves = {name: losses(folder) for name, folder in folders.items()}
     marks = sorted({i for i in (1, 2, 3, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, args.iterations)
@@ -176,9 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     first = {n: next((i for i in sorted(reference) if curves[n].get(i) != reference[i]), None) for n in runs[1:]}
     print("first iteration whose loss differs: " + "; ".join(f"{n}: {first[n]}" for n in runs[1:]))
     rounding = "1 process again" if args.device == "cuda" else "1 process, 2 threads"
-    if runs[0] == "1 process" and rounding in runs and "2 processes" in runs:
-        print(f"verdict (2 processes against `{rounding}`): "
-              + systematic_verdict(reference, curves[rounding], curves["2 processes"]))
+    for parallel in (n for n in runs if n.endswith(" processes") and runs[0] == "1 process" and rounding in runs):
+        print(f"verdict ({parallel} against `{rounding}`): "
+              + systematic_verdict(reference, curves[rounding], curves[parallel]))
     print("\n| run | held-out PSNR dB | against the reference dB | avatar tensors: largest difference / largest value |")
     print("|---|---|---|---|")
     base = heldout(folders[runs[0]])

@@ -166,6 +166,18 @@ def load_preset(name_or_path: str | Path) -> dict[str, Any]:
     return data
 
 
+def derive_preset(path: str | Path, base: str | Path, **sections: dict[str, Any]) -> Path:
+    """`base` (a preset name or path) with the keys of each section given replaced (`fit={"iterations": 3}`; a
+    section it lacks is added), written to `path` as YAML for a stage or fit to read; `path`."""
+    preset = load_preset(base)
+    preset.pop("_path")
+    for section, values in sections.items():
+        preset.setdefault(section, {}).update(values)
+    path = Path(path)
+    path.write_text(yaml.safe_dump(preset))
+    return path
+
+
 def resolve_device(name: str, source: str = "device") -> torch.device:
     """A torch device from a `--device` or preset value (`source` names it): "auto" is CUDA when available.
 

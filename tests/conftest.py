@@ -39,15 +39,10 @@ def small_capture(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_fit(small_capture, tmp_path_factory):
     """(capture folder, avatar.pt) of a 3-iteration fit of `small_capture` with the test preset."""
-    import yaml
-
     from pig.avatar.training import fit
-    from pig.config import load_preset
+    from pig.config import derive_preset
 
     root = tmp_path_factory.mktemp("tinyfit")
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(iterations=3, eval_every=3, checkpoint_minutes=0.0)
-    (root / "preset.yaml").write_text(yaml.safe_dump(preset))
+    derive_preset(root / "preset.yaml", "test", fit={"iterations": 3, "eval_every": 3, "checkpoint_minutes": 0.0})
     return small_capture, fit(small_capture, root / "pig", str(root / "preset.yaml"))
 

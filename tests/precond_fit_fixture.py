@@ -14,24 +14,21 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
 import pig.avatar.training as training
-from pig.config import load_preset
+from pig.config import derive_preset
 
 
 def paper_test_preset(path: Path, iterations: int, precond: dict | None = None) -> str:
     """The `paper` preset with CPU-test sizes (see the module docstring), written to `path`; returns its path."""
-    preset = load_preset("paper")
-    preset.pop("_path")
-    preset["avatar"].update(num_anchors=1200, levels=2, sh_degree=1, hidden_layers=2, hidden_width=32,
-                            refine_hidden_layers=2, refine_hidden_width=16)
-    preset["fit"].update(iterations=iterations, views=2, timesteps=2, weight_lpips=0.0, eval_every=10**6, eval_frames=1,
-                         checkpoint_minutes=10**6, compile=False, compile_posing=False, precision="float32",
-                         lpips_compile=False, view_cache=64, loader_workers=1, prefetch=1, cpu_threads=1)
-    preset["precond"].update(cg_compile=False, **(precond or {}))
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(
+        path, "paper",
+        avatar=dict(num_anchors=1200, levels=2, sh_degree=1, hidden_layers=2, hidden_width=32, refine_hidden_layers=2,
+                    refine_hidden_width=16),
+        fit=dict(iterations=iterations, views=2, timesteps=2, weight_lpips=0.0, eval_every=10**6, eval_frames=1,
+                 checkpoint_minutes=10**6, compile=False, compile_posing=False, precision="float32",
+                 lpips_compile=False, view_cache=64, loader_workers=1, prefetch=1, cpu_threads=1),
+        precond=dict(cg_compile=False, **(precond or {}))))
 
 
 @dataclass

@@ -13,10 +13,9 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
 from pig.avatar.checkpoint import CheckpointError, load_avatar
-from pig.config import load_preset
+from pig.config import derive_preset
 from pig.data.capture import Capture
 from pig.data.capture_record import RECORD, capture_record
 from pig.data.raw import CaptureError
@@ -32,12 +31,8 @@ def _snapshot(folder: Path) -> dict[str, str]:
 
 
 def _preset(tmp_path: Path, **fit) -> str:
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update({"iterations": 3, "eval_every": 3, "checkpoint_minutes": 0.0, **fit})
-    path = tmp_path / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(tmp_path / "preset.yaml", "test",
+                             fit={"iterations": 3, "eval_every": 3, "checkpoint_minutes": 0.0, **fit}))
 
 
 def _other_capture(capture: Path, copy: Path) -> Path:

@@ -6,7 +6,6 @@ import math
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from pig.avatar.averaging import WeightAverage
 
@@ -98,16 +97,10 @@ def test_restart_and_state_round_trip(rng):
 
 
 def _preset(tmp_path, **fit):
-    from pig.config import load_preset
+    from pig.config import derive_preset
 
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(fit)
-    preset["avatar"].update(num_anchors=300)
-    preset["precond"].update(grid_delay=6)
-    path = tmp_path / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(tmp_path / "preset.yaml", "test", fit=fit, avatar={"num_anchors": 300},
+                             precond={"grid_delay": 6}))
 
 
 class _Killed(Exception):

@@ -3,11 +3,10 @@ L1 + SSIM, LPIPS network), and with "reduce-overhead" each iteration begins a ne
 (so a step's graph outputs are never read after the next step's replays overwrote them)."""
 import pytest
 import torch
-import yaml
 
 from pig.avatar.fit_config import FitConfig
 from pig.avatar.training import fit
-from pig.config import ConfigError, load_preset
+from pig.config import ConfigError, derive_preset
 
 ITERATIONS = 3
 
@@ -25,12 +24,10 @@ def _fit_recording(capture, root, monkeypatch, mode: str) -> tuple[dict[str, str
 
     monkeypatch.setattr(torch, "compile", recorder)
     monkeypatch.setattr(torch.compiler, "cudagraph_mark_step_begin", lambda: marks.append(1))
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(iterations=ITERATIONS, eval_every=ITERATIONS, checkpoint_minutes=0.0, compile=True,
-                         compile_posing=True, lpips_compile=True, weight_lpips=0.1, lpips_weights="random",
-                         lpips_net="alex", lpips_crop=32, compile_mode=mode)
-    (root / "preset.yaml").write_text(yaml.safe_dump(preset))
+    derive_preset(root / "preset.yaml", "test",
+                  fit={"iterations": ITERATIONS, "eval_every": ITERATIONS, "checkpoint_minutes": 0.0, "compile": True,
+                       "compile_posing": True, "lpips_compile": True, "weight_lpips": 0.1, "lpips_weights": "random",
+                       "lpips_net": "alex", "lpips_crop": 32, "compile_mode": mode})
     fit(capture, root / "fit", str(root / "preset.yaml"))
     return modes, len(marks)
 

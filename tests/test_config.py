@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from pig.config import ConfigError, load_preset, load_section, load_yaml
+from pig.config import ConfigError, derive_preset, load_preset, load_section, load_yaml
 
 
 @dataclass
@@ -64,3 +64,20 @@ def test_a_wrong_number_names_the_file_and_key(tmp_path, text, message):
     path = _yaml(tmp_path, f"fit:\n  {text}\n")
     with pytest.raises(ConfigError, match=f"^{re.escape(str(path))}: {message}"):
         load_section(load_preset(path), "fit", Section)
+
+
+def test_written_preset_replaces_only_the_keys_given(tmp_path):
+    from pig.avatar.training import FitConfig
+
+    path = derive_preset(tmp_path / "p.yaml", "test", fit={"iterations": 7, "weight_lpips": 1e-5},
+                         extra={"subjects": ["0165_01"]})
+    written, base = load_preset(path), load_preset("test")
+    assert "_path" not in load_yaml(path)  # where it came from is not a key of the preset
+    cfg = load_section(written, "fit", FitConfig)
+    assert (cfg.iterations, cfg.weight_lpips) == (7, 1e-5)
+    assert {k: v for k, v in written["fit"].items() if k not in ("iterations", "weight_lpips")} == \
+        {k: v for k, v in base["fit"].items() if k not in ("iterations", "weight_lpips")}
+    assert all(written[s] == base[s] for s in base if s not in ("fit", "_path"))
+    assert written["extra"] == {"subjects": ["0165_01"]}  # a leading-zero id stays a string
+    assert load_preset("test") == base  # the named preset itself untouched
+

@@ -6,10 +6,9 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 
 from pig.avatar.checkpoint import load_avatar
-from pig.config import ConfigError, load_preset, load_section
+from pig.config import ConfigError, derive_preset, load_preset, load_section
 from pig.field.latent_grid import LatentGrid
 from pig.field.optim import Adam
 from pig.field.precondition import PrecondConfig
@@ -112,15 +111,9 @@ def test_anchor_lr_scale_ramps_linearly_to_one():
 
 
 def _preset(tmp_path, name: str, iterations: int, **precond) -> str:
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["avatar"].update(num_anchors=300)
-    preset["precond"].update(precond)
-    preset["fit"].update(iterations=iterations, eval_every=100, eval_frames=1, checkpoint_minutes=0.0, prefetch=1,
-                         loader_workers=1)
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(tmp_path / f"{name}.yaml", "test", avatar={"num_anchors": 300}, precond=precond,
+                             fit={"iterations": iterations, "eval_every": 100, "eval_frames": 1,
+                                  "checkpoint_minutes": 0.0, "prefetch": 1, "loader_workers": 1}))
 
 
 class Killed(Exception):

@@ -12,7 +12,7 @@ import yaml
 
 from pig.avatar.checkpoint import CheckpointError, loss_terms
 from pig.avatar.losses import fit_note, lpips_term
-from pig.config import ConfigError, load_preset, load_section
+from pig.config import ConfigError, derive_preset, load_preset, load_section
 from pig.metrics.lpips import LPIPS
 from pig.avatar.training import FitConfig
 
@@ -134,15 +134,8 @@ def test_lpips_weights_option_is_checked(tmp_path):
 
 
 def _preset(tmp_path, **fit) -> str:
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(fit)
-    preset["avatar"].update(num_anchors=300)
-    preset["evaluate"].update(device="cpu", timing_frames=1)
-    preset["rasterizer"].update(backend="cpu")
-    path = tmp_path / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(tmp_path / "preset.yaml", "test", fit=fit, avatar={"num_anchors": 300},
+                             evaluate={"device": "cpu", "timing_frames": 1}, rasterizer={"backend": "cpu"}))
 
 
 class _Killed(Exception):

@@ -8,13 +8,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-import yaml
 from torch._dynamo.utils import counters
 
 from pig.avatar.lpips_crop import crop_views, crop_views_sliced, mask_boxes
 from pig.avatar.losses import lpips_views
 from pig.avatar.training import FitConfig, LossTerms
-from pig.config import ConfigError, load_preset, load_section
+from pig.config import ConfigError, derive_preset, load_preset, load_section
 from pig.metrics.lpips import LPIPS, TrainingLPIPS
 from op_names import OpNames
 
@@ -279,13 +278,11 @@ def test_lpips_form_settings_are_checked_and_paper_uses_mmlphuman():
 def test_fit_with_the_mmlphuman_form_trains_with_the_term(small_capture, tmp_path):
     from pig.avatar.training import fit
 
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(iterations=2, eval_every=2, weight_lpips=2.0, lpips_net="alex", lpips_weights="random",
-                         lpips_form="mmlphuman", lpips_crop=32, lpips_patches_from=0.5)
-    preset["avatar"].update(num_anchors=300)
-    preset["rasterizer"].update(backend="cpu")
-    (tmp_path / "preset.yaml").write_text(yaml.safe_dump(preset))
+    derive_preset(tmp_path / "preset.yaml", "test",
+                  fit={"iterations": 2, "eval_every": 2, "weight_lpips": 2.0, "lpips_net": "alex",
+                       "lpips_weights": "random", "lpips_form": "mmlphuman", "lpips_crop": 32,
+                       "lpips_patches_from": 0.5},
+                  avatar={"num_anchors": 300}, rasterizer={"backend": "cpu"})
     fit(small_capture, tmp_path / "pig", str(tmp_path / "preset.yaml"))
     steps = pd.read_csv(tmp_path / "pig" / "train_log.csv").iloc[1:]
     assert len(steps) == 2 and (steps["lpips"] > 0).all() and not steps["lpips"].isna().any()

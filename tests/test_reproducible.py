@@ -6,21 +6,15 @@ elements), where two threads used to add into shared vertices in a racing order.
 import pandas as pd
 import pytest
 import torch
-import yaml
 
-from pig.config import load_preset
+from pig.config import derive_preset, load_preset
 
 LOG_METRICS = ["iteration", "lod", "loss", "l1", "ssim", "lpips", "lpips_term", "heldout_psnr", "heldout_psnr_iterate"]
 
 
 def _preset(tmp_path) -> str:
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["avatar"].update(num_anchors=6000)
-    preset["fit"].update(iterations=4, eval_every=4, checkpoint_minutes=0.0, views=2)
-    path = tmp_path / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(tmp_path / "preset.yaml", "test", avatar={"num_anchors": 6000},
+                             fit={"iterations": 4, "eval_every": 4, "checkpoint_minutes": 0.0, "views": 2}))
 
 
 def _workflow_threads() -> list[int]:

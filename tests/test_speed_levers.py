@@ -10,7 +10,6 @@ from contextlib import nullcontext
 import numpy as np
 import pytest
 import torch
-import yaml
 from torch._dynamo.utils import counters
 
 from pig.avatar.batches import Picks, TrainingBatch, ViewBatch
@@ -20,7 +19,7 @@ from pig.avatar.decoders import AnchorDecoder
 from pig.avatar.losses import boundary_band, boundary_band_host
 from pig.avatar.training import FitConfig, LossTerms, iteration_loss, lr_factor
 from pig.body.params import SmplxParams
-from pig.config import ConfigError, load_preset, load_section
+from pig.config import ConfigError, derive_preset, load_preset, load_section
 from pig.field.knn_graph import knn_laplacian
 from pig.field.knn_solve import CGNotConverged, CGSystem
 from pig.field.optim import Adam
@@ -567,13 +566,9 @@ def test_lr_factor_closed_form():
 
 def _preset(tmp_path, name: str, **fit) -> str:
     """The test preset with a small avatar and a quiet loop (no periodic checkpoint unless asked)."""
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["avatar"].update(num_anchors=300)
-    preset["fit"].update(dict(eval_frames=1, checkpoint_minutes=1e6, prefetch=1, loader_workers=1), **fit)
-    path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(tmp_path / f"{name}.yaml", "test", avatar={"num_anchors": 300},
+                             fit={"eval_frames": 1, "checkpoint_minutes": 1e6, "prefetch": 1, "loader_workers": 1,
+                                  **fit}))
 
 
 def _log(folder) -> list[dict]:

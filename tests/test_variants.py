@@ -8,7 +8,6 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-import yaml
 
 from pig.avatar.checkpoint import load_avatar
 from pig.avatar.config import AvatarConfig
@@ -17,7 +16,7 @@ from pig.avatar.variants import variant_overrides
 from pig.body.params import SmplxParams
 from pig.body.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 from pig.body.transport import barycentric_points
-from pig.config import ConfigError, from_dict, load_preset, load_section
+from pig.config import ConfigError, derive_preset, from_dict, load_preset, load_section
 from avatar_fixture import small_avatar
 
 NEW_VARIANTS = ("template_bound", "local_offsets", "lod_1of1")
@@ -181,12 +180,8 @@ def test_local_offsets_are_the_transport_rotation_times_the_decoded_offset(stand
 
 @pytest.fixture(scope="module")
 def short_preset(tmp_path_factory):
-    preset = load_preset("test")
-    preset.pop("_path")
-    preset["fit"].update(iterations=2, eval_every=2, eval_frames=1, checkpoint_minutes=0.0)
-    path = tmp_path_factory.mktemp("variants") / "preset.yaml"
-    path.write_text(yaml.safe_dump(preset))
-    return str(path)
+    return str(derive_preset(tmp_path_factory.mktemp("variants") / "preset.yaml", "test",
+                             fit={"iterations": 2, "eval_every": 2, "eval_frames": 1, "checkpoint_minutes": 0.0}))
 
 
 @pytest.mark.parametrize("variant", NEW_VARIANTS)
