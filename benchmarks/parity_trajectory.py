@@ -176,9 +176,10 @@ def main(argv: list[str] | None = None) -> int:
     first = {n: next((i for i in sorted(reference) if curves[n].get(i) != reference[i]), None) for n in runs[1:]}
     print("first iteration whose loss differs: " + "; ".join(f"{n}: {first[n]}" for n in runs[1:]))
     rounding = "1 process again" if args.device == "cuda" else "1 process, 2 threads"
-    for parallel in (n for n in runs if n.endswith(" processes") and runs[0] == "1 process" and rounding in runs):
-        print(f"verdict ({parallel} against `{rounding}`): "
-              + systematic_verdict(reference, curves[rounding], curves[parallel]))
+    if runs[0] == "1 process" and rounding in runs:
+        for parallel in (n for n in runs if n.endswith(" processes")):
+            print(f"verdict ({parallel} against `{rounding}`): "
+                  + systematic_verdict(reference, curves[rounding], curves[parallel]))
     print("\n| run | held-out PSNR dB | against the reference dB | avatar tensors: largest difference / largest value |")
     print("|---|---|---|---|")
     base = heldout(folders[runs[0]])
