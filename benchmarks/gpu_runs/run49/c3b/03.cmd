@@ -1,0 +1,1 @@
+python3 benchmarks/fit_multi_gpu.py --workdir /tmp/mg --collect --gpus 4 --parity 3000 | tee $Q/parity_table.txt; for d in /tmp/mg/parity_*; do mkdir -p $Q/$(basename $d) && cp $d/run.json $d/fit/train_log.csv $Q/$(basename $d)/; done

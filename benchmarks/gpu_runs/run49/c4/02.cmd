@@ -1,0 +1,1 @@
+python3 benchmarks/parity_trajectory.py --workdir /tmp/tp --device cuda --preset paper --capture /tmp/mg/data/capture --iterations 300 --runs '1 process' '1 process again' '2 processes' '4 processes' > $Q/traj_paper.txt 2>&1; for d in /tmp/tp/*/; do mkdir -p $Q/$(basename $d) && cp $d/train_log.csv $Q/$(basename $d)/; done
