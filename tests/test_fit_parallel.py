@@ -364,7 +364,7 @@ def _log(output: Path) -> list[dict]:
     pytest.param({"fit": dict(batched_render=True, host_band=True, lpips_views=0, lpips_patches_from=0.375),
                   "precond": dict(knn_solver="cg", cg_check_every=8)}, id="batched"),
 ])
-def test_two_processes_follow_the_one_process_fit_step_after_step(small_capture, tmp_path, levers):
+def test_two_processes_follow_the_one_process_fit_step_after_step(small_capture, tmp_path, levers, capfd):
     # A whole fit, not one step: 8 iterations of the parity step's batch with the LPIPS term on random views, one
     # process against `pig fit --gpus 2` on the CPU. On the CPU a fit is bit-identical run to run, so the two differ
     # by the order of their sums alone: measured <= 1.4e-6 relative on every step's loss over 300 steps per timestep
@@ -374,7 +374,9 @@ def test_two_processes_follow_the_one_process_fit_step_after_step(small_capture,
                                iterations=8, eval_every=8, log_every=1)
     one, two = tmp_path / "one", tmp_path / "two"
     fit(small_capture, one, preset, threads=1, progress_s=1e6)
+    capfd.readouterr()
     fit_parallel(small_capture, two, preset, "pig", WORLD, "cpu", progress_s=1e6, cores=2, timeout_s=120)
+    assert capfd.readouterr().err.count("LPIPS term with randomly initialised") == 1  # rank 0 tells, not each rank
     rows = [{int(r["iteration"]): r for r in _log(folder)} for folder in (one, two)]
     assert sorted(rows[0]) == sorted(rows[1]) == list(range(9))
     for i in range(1, 9):

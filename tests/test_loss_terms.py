@@ -94,6 +94,8 @@ def test_lpips_term_records_each_state_and_its_note(tmp_path, empty_hub, capsys)
     assert record["detail"].startswith("LPIPS vgg backbone: weights file vgg16-397923af.pth not found (searched ")
     assert capsys.readouterr().err == f"fit: LPIPS term left out of the loss ({record['detail']})\n"
     assert fit_note(record) == ABSENT_VGG
+    assert lpips_term(FitConfig(), notify=False)[1] == record  # a data-parallel fit's other ranks: the same, silent
+    assert capsys.readouterr().err == ""
 
     net, record = lpips_term(FitConfig(weight_lpips=0.0))
     assert net is None and record == {"weight": 0.0, "net": "vgg", "state": "weight 0", "detail": ""}
@@ -105,6 +107,8 @@ def test_lpips_term_records_each_state_and_its_note(tmp_path, empty_hub, capsys)
     assert all(torch.equal(net.state_dict()[key], value) for key, value in reference.state_dict().items())
     assert "randomly initialised alex weights (seed 5; for timing only)" in capsys.readouterr().err
     assert fit_note(record) == "fit with a randomly initialised LPIPS (timing only)"
+    assert lpips_term(FitConfig(lpips_net="alex", lpips_weights="random", seed=5), notify=False)[1] == record
+    assert capsys.readouterr().err == ""
 
     _write_weights(reference, empty_hub)  # pretrained weights on disk: the paper's term
     net, record = lpips_term(FitConfig(lpips_net="alex"))

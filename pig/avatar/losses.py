@@ -27,26 +27,29 @@ NET_NAMES = {"alex": "AlexNet", "vgg": "VGG"}
 LPIPS_FORMS = ("full", "mmlphuman")
 
 
-def lpips_term(cfg, device: str | torch.device = "cpu") -> tuple[torch.nn.Module | None, dict]:
+def lpips_term(cfg, device: str | torch.device = "cpu", notify: bool = True) -> tuple[torch.nn.Module | None, dict]:
     """The LPIPS module of Eq. 15 (frozen, on `device`) or None, and the record of its state:
     {"weight", "net", "state" (one of LPIPS_STATES), "detail" (why the weights are absent, else "")}.
 
     `cfg` is the preset's fit section (pig.avatar.training.FitConfig): weight_lpips, lpips_net, lpips_weights
     ("pretrained" or "random"), lpips_backbone_weights, lpips_linear_weights, seed. Absent pretrained
-    weights leave the term out with a one-line notice on stderr; "random" looks up no file.
+    weights leave the term out with a one-line notice on stderr (`notify`: a data-parallel fit's rank 0 alone tells);
+    "random" looks up no file.
     """
     record = {"weight": float(cfg.weight_lpips), "net": cfg.lpips_net, "state": "on", "detail": ""}
     if cfg.weight_lpips <= 0:
         return None, {**record, "state": "weight 0"}
     if cfg.lpips_weights == "random":
-        print(f"fit: LPIPS term with randomly initialised {cfg.lpips_net} weights (seed {cfg.seed}; for timing only)",
-              file=sys.stderr)
+        if notify:
+            print(f"fit: LPIPS term with randomly initialised {cfg.lpips_net} weights (seed {cfg.seed}; for timing only)",
+                  file=sys.stderr)
         net = LPIPS(cfg.lpips_net, weights="random", seed=cfg.seed)
         return net.to(device), {**record, "state": "random weights"}
     try:
         net = LPIPS(cfg.lpips_net, cfg.lpips_backbone_weights, cfg.lpips_linear_weights)
     except WeightsMissing as err:
-        print(f"fit: LPIPS term left out of the loss ({err})", file=sys.stderr)
+        if notify:
+            print(f"fit: LPIPS term left out of the loss ({err})", file=sys.stderr)
         return None, {**record, "state": "weights absent", "detail": str(err)}
     return net.to(device), record
 

@@ -387,7 +387,7 @@ def _fit(capture_dir: Path, output_dir: Path, preset_name: str, variant: str, de
     base_lrs = [[group["lr"] for group in opt.param_groups] for opt in optimizers]  # the schedule scales these
     average = WeightAverage(optimizers, fit_cfg.average_decay) if fit_cfg.average_decay > 0 else None
     generator = torch.Generator().manual_seed(fit_cfg.seed)  # kept in checkpoints; batches come from (seed, iteration)
-    lpips, lpips_record = lpips_term(fit_cfg, device)
+    lpips, lpips_record = lpips_term(fit_cfg, device, notify=lead)
     loss_terms = {"lpips": lpips_record}
     # Delayed and ramped grid preconditioning: the grid's lambdas are grid_lambda_scale(i) of the preset's during
     # iteration i (plain steps before `grid_delay`, then the ramp's stages; 1 throughout without either, and form
