@@ -19,7 +19,10 @@ the device synchronised around each (`breakdown`): decoding ground truth and ren
 host-to-device copies (float32 from pageable memory as the old stage did, uint8 from page-locked as now), PSNR,
 SSIM, LPIPS-VGG (pair, and the render side against cached ground-truth taps) and the FID network, in ms per view;
 with `--lpips-precision` / `--fid-precision` / `--channels-last` (passed to the evaluate stage's preset too) also
-the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views.
+the networks' rows in that arithmetic and the largest |LPIPS - LPIPS float32| over the same views. With
+`--lpips-window` (evaluate.lpips_window, the stage's preset too) also the batch's nonzero boxes on the host, LPIPS
+in the preset's arithmetic over the window they give (LPIPS.window), the window's share of the frame, and the
+largest |windowed - whole-frame LPIPS| in that arithmetic.
 
 `--render-breakdown N` times each part of a render second alone on N novel-pose frames (after one warm-up frame),
 through the render stage's own calls in its order, the device synchronised around each (`render_breakdown`): the
@@ -258,7 +261,7 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     from pig.metrics.lpips import LPIPS
     from pig.metrics.psnr import psnr
     from pig.metrics.ssim import ssim_map
-    from pig.stages.evaluate import EvaluateConfig, view_batches
+    from pig.stages.evaluate import EvaluateConfig, nonzero_box, view_batches
 
     cfg = load_section(load_preset(str(preset)), "evaluate", EvaluateConfig)
     dev = torch.device(device)
@@ -273,7 +276,11 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     if lowered:
         lpips_low = LPIPS(cfg.lpips_net, precision=cfg.lpips_precision, channels_last=cfg.channels_last).to(dev)
         inception_low = InceptionFeatures(precision=cfg.fid_precision, channels_last=cfg.channels_last).to(dev)
-    lpips_gap = 0.0
+    lpips_gap = window_gap = 0.0
+    window_share: list[float] = []
+    lpips_preset_net = lpips_low if lowered else lpips
+    window_rows = (f"LPIPS-{cfg.lpips_net} truth taps over the window ({arithmetic})",
+                   f"LPIPS-{cfg.lpips_net} render vs taps over the window ({arithmetic})")
     timed = PartTimer(dev)
     times = timed.times
 
@@ -307,6 +314,18 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
                 timed(fid_row, lambda: inception_low(x))
                 lpips_gap = max(lpips_gap, (low - lpips.distance(x, reference)).abs().max().item())
                 del low_reference
+            if cfg.lpips_window:
+                boxes = np.array(timed("nonzero boxes of masks + renders (1 thread)",
+                                       lambda: [nonzero_box(image) for image in (*masks, *renders)]))
+                box = (boxes[:, 0].min(), boxes[:, 1].max(), boxes[:, 2].min(), boxes[:, 3].max())
+                rows_, cols_ = lpips_preset_net.window(tuple(map(int, box)), *x.shape[-2:])
+                window_share.append((rows_.stop - rows_.start) * (cols_.stop - cols_.start) / x[0, 0].numel())
+                window_reference = timed(window_rows[0], lambda: lpips_preset_net.reference(y[..., rows_, cols_]))
+                windowed = timed(window_rows[1], lambda: lpips_preset_net.distance(
+                    x[..., rows_, cols_], window_reference, frame=tuple(x.shape[-2:])))
+                whole = lpips_preset_net.distance(x, lpips_preset_net.reference(y))
+                window_gap = max(window_gap, (windowed - whole).abs().max().item())
+                del window_reference
         del reference
         if b == 0:
             times.clear()
@@ -315,9 +334,9 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     rows = [{"part": name, "ms_per_view": value} for name, value in ms.items()]
     print(f"\nwhere an evaluate second goes: {views} views of {split_dir.name} lod{level}, batches of "
           f"{cfg.batch_size}, device {device}, each part alone")
-    print(f"{'part':<52} {'ms/view':>9}")
+    print(f"{'part':<66} {'ms/view':>9}")
     for row in rows:
-        print(f"{row['part']:<52} {row['ms_per_view']:>9.2f}")
+        print(f"{row['part']:<66} {row['ms_per_view']:>9.2f}")
     # Per view score (one view at one LOD) at this split's LOD count L: the old jobs redid the ground truth's
     # share at every LOD; the pass does it once per view. Host work runs on evaluate.encode_workers threads.
     lods = len(list(split_dir.glob("lod*")))
@@ -325,6 +344,12 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     if lowered:
         print(f"largest |LPIPS {arithmetic} - LPIPS float32| over these views: {lpips_gap:.2e} (issue 39: 1e-3)")
         rows.append({"part": f"max |LPIPS {arithmetic} - float32|", "lpips_difference": lpips_gap})
+    if cfg.lpips_window:
+        share = sum(window_share) / len(window_share)
+        print(f"LPIPS window: {share:.1%} of the frame on average over {len(window_share)} batches; largest "
+              f"|windowed - whole-frame LPIPS| ({arithmetic}): {window_gap:.2e}")
+        rows.append({"part": "LPIPS window share of the frame", "share": share})
+        rows.append({"part": f"max |LPIPS windowed - whole frame| ({arithmetic})", "lpips_difference": window_gap})
     truth_host = ms["decode ground truth (1 thread)"] + ms["decode masks (1 thread)"]
     old_host = truth_host + ms["decode renders (1 thread)"] + ms["uint8 to float32 + mask on the host (old)"]
     new_host = truth_host / lods + ms["decode renders (1 thread)"]
@@ -341,6 +366,12 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
                         + ms[f"LPIPS-{net} truth taps ({arithmetic})"] / lods)
         fid_change = (1 + 1 / lods) * (ms[fid_row] - ms["FID Inception, one image set"])
         paths.append((f"new in {arithmetic}", new_host, new_device - lpips_f32 + lpips_preset + fid_change))
+    if cfg.lpips_window:  # the preset's pass with LPIPS over the window, the boxes found on the host
+        lpips_whole = lpips_preset if lowered else lpips_f32
+        lpips_window = ms[window_rows[1]] + ms[window_rows[0]] / lods
+        name, _, device_whole = paths[-1]
+        paths.append((f"{name} with the LPIPS window", new_host + ms["nonzero boxes of masks + renders (1 thread)"],
+                      device_whole - lpips_whole + lpips_window))
     for name, host, on_device in paths:
         print(f"{name}, per view score at {lods} LODs: host {host:.2f} ms on one thread "
               f"({host / cfg.encode_workers:.2f} ms on {cfg.encode_workers}), device {on_device:.2f} ms")
@@ -538,6 +569,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fid-precision", choices=["float32", "float16", "bfloat16"], default=None,
                         help="evaluate.fid_precision (preset's)")
     parser.add_argument("--channels-last", action="store_true", help="evaluate.channels_last: true")
+    parser.add_argument("--lpips-window", action="store_true",
+                        help="evaluate.lpips_window: true; the breakdown adds the window's rows")
     parser.add_argument("--codec-sample", type=int, default=0,
                         help="also time every codec on this many rendered novel-pose views (one thread)")
     parser.add_argument("--upscale", type=int, default=1,
@@ -571,7 +604,8 @@ def main(argv: list[str] | None = None) -> int:
                                               ("batch_size", args.batch_size),
                                               ("lpips_precision", args.lpips_precision),
                                               ("fid_precision", args.fid_precision),
-                                              ("channels_last", args.channels_last or None)) if value is not None}
+                                              ("channels_last", args.channels_last or None),
+                                              ("lpips_window", args.lpips_window or None)) if value is not None}
     preset = write_preset(args.workdir, args.preset, args.iterations, args.device, evaluate)
     variant = args.workdir / f"{capture.name}_{args.preset}_{args.iterations}" / "pig"
     if not (variant / "avatar.pt").is_file():

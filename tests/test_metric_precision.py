@@ -169,9 +169,11 @@ def test_precision_options_are_checked_and_noted():
         load_section({"evaluate": {"lpips_precision": "half"}}, "evaluate", EvaluateConfig)
 
 
-def test_the_evaluate_pass_reads_the_device_only_after_its_last_batch(tmp_path, rng):
+@pytest.mark.parametrize("lpips_window", [False, True])
+def test_the_evaluate_pass_reads_the_device_only_after_its_last_batch(tmp_path, rng, lpips_window):
     # A host synchronisation per batch would stall a GPU pass at every batch; all of them come after the loop, so
-    # twice the batches make the same synchronisations (pig.host_syncs counts them on any device).
+    # twice the batches make the same synchronisations (pig.host_syncs counts them on any device). LPIPS's window
+    # comes from the loader's boxes on the host, not from the device.
     from test_metrics import _TinyInception
 
     from pig.host_syncs import HostSyncs
@@ -187,6 +189,7 @@ def test_the_evaluate_pass_reads_the_device_only_after_its_last_batch(tmp_path, 
                                 {0: render_like(truths, rng, 0.8), 1: render_like(truths, rng, 2.0)})
         with HostSyncs() as syncs:
             evaluate_levels(Capture.load(capture_dir, cache_mb=0), "novel_view", levels,
-                            EvaluateConfig(batch_size=2, encode_workers=2), lpips, inception, torch.device("cpu"))
+                            EvaluateConfig(batch_size=2, encode_workers=2, lpips_window=lpips_window), lpips,
+                            inception, torch.device("cpu"))
         counts.append(syncs.by_phase_op())
     assert counts[0] == counts[1] and sum(counts[0].values()) > 0

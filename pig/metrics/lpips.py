@@ -89,6 +89,7 @@ class LPIPS(nn.Module):
         self.precision, self.channels_last = check_precision(precision, "LPIPS"), channels_last
         self.features = backbone_features(net)
         self.taps = TAPS[net]
+        self.field, self.stride = receptive_field(self.features, self.taps[-1])
         self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in CHANNELS[net])
         self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1))
@@ -160,19 +161,50 @@ class LPIPS(nn.Module):
         against one pass over the ground truth."""
         return [_unit(fy) for fy in self._activations(y)]
 
-    def distance(self, x: torch.Tensor, reference: list[torch.Tensor]) -> torch.Tensor:
-        """(B,) distances of images `x` to the images whose `reference` taps are given; equals forward(x, y)."""
+    def distance(self, x: torch.Tensor, reference: list[torch.Tensor], frame: tuple[int, int] | None = None) -> torch.Tensor:
+        """(B,) distances of images `x` to the images whose `reference` taps are given; equals forward(x, y).
+
+        `frame` (height, width): `x` and the reference are the `window` of frames of that size outside which the
+        compared images are equal; each tap's spatial mean is then taken over the whole frame's tap."""
         if reference and x.shape[0] != reference[0].shape[0]:
             raise ValueError(f"LPIPS: {x.shape[0]} images against a reference of {reference[0].shape[0]}")
         self._check(x, x)
+        counts = [h * w for h, w in self.tap_sizes(*frame)] if frame is not None else None
         total = x.new_zeros(x.shape[0])
-        for fx, ny, lin in zip(self._activations(x), reference, self.lins):
+        for k, (fx, ny, lin) in enumerate(zip(self._activations(x), reference, self.lins)):
             if fx.shape != ny.shape:
                 raise ValueError(f"LPIPS: images of {tuple(x.shape)} against reference taps of {tuple(ny.shape)}")
             # Weight the squared difference of the unit features, average spatially; the difference in one pass
             # over the tap (ny - fx / |fx|).
-            total = total + lin(torch.addcdiv(ny, fx, _channel_norm(fx), value=-1).square()).mean(dim=(1, 2, 3))
+            term = lin(torch.addcdiv(ny, fx, _channel_norm(fx), value=-1).square())
+            total = total + (term.mean(dim=(1, 2, 3)) if counts is None else term.sum(dim=(1, 2, 3)) / counts[k])
         return total
+
+    def tap_sizes(self, height: int, width: int) -> list[tuple[int, int]]:
+        """(h, w) of each tap of a (height, width) image, by the layers' size arithmetic."""
+        sizes, size = [], (height, width)
+        for index, layer in enumerate(self.features[:self.taps[-1] + 1]):
+            if isinstance(layer, (nn.Conv2d, nn.MaxPool2d)):
+                k, s, p = (_pair(getattr(layer, name))[0] for name in ("kernel_size", "stride", "padding"))
+                size = tuple((n + 2 * p - k) // s + 1 for n in size)
+            if index in self.taps:
+                sizes.append(size)
+        return sizes
+
+    def window(self, box: tuple[int, int, int, int], height: int, width: int) -> tuple[slice, slice]:
+        """The rows and columns of (height, width) frames that decide the distance of two images equal outside
+        `box` (top, bottom, left, right; half-open): the box grown by the backbone's receptive field and one stride
+        (a tap unit whose field reaches past the window sees no difference, in the window as in the frame, so its
+        term is zero either way), its start on the stride's grid so that the window's taps are the frame's.
+        `distance(x[..., rows, cols], reference of y[..., rows, cols], frame=(height, width))` is then
+        `forward(x, y)` up to the order of the sums."""
+        margin = self.field + self.stride
+        top, bottom, left, right = box
+        top, left = (max(0, start - margin) // self.stride * self.stride for start in (top, left))
+        bottom, right = min(height, bottom + margin), min(width, right + margin)
+        if min(bottom - top, right - left) < MIN_SIDE[self.net]:  # a frame too small to cut
+            return slice(0, height), slice(0, width)
+        return slice(top, bottom), slice(left, right)
 
     def _check(self, x: torch.Tensor, y: torch.Tensor) -> None:
         if x.shape != y.shape or x.dim() != 4 or x.shape[1] != 3:
@@ -180,6 +212,20 @@ class LPIPS(nn.Module):
         if min(x.shape[2:]) < MIN_SIDE[self.net]:
             raise ValueError(f"LPIPS ({self.net}) needs images of at least {MIN_SIDE[self.net]} pixels per side, "
                              f"found {x.shape[3]}x{x.shape[2]}")
+
+
+def receptive_field(features: nn.Sequential, last: int) -> tuple[int, int]:
+    """(receptive field in pixels, stride) of layer `last` of a stack of convolutions, pools and pointwise layers."""
+    field, stride = 1, 1
+    for layer in features[:last + 1]:
+        if isinstance(layer, (nn.Conv2d, nn.MaxPool2d)):
+            field += (_pair(layer.kernel_size)[0] - 1) * stride
+            stride *= _pair(layer.stride)[0]
+    return field, stride
+
+
+def _pair(value: int | tuple[int, ...]) -> tuple[int, ...]:
+    return value if isinstance(value, tuple) else (value, value)
 
 
 def _channel_norm(features: torch.Tensor) -> torch.Tensor:

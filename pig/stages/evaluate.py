@@ -69,6 +69,10 @@ class EvaluateConfig:
     lpips_precision: Literal["float32", "float16", "bfloat16"] = "float32"
     fid_precision: Literal["float32", "float16", "bfloat16"] = "float32"
     channels_last: bool = False  # both networks' weights and inputs in channels-last memory format
+    # LPIPS of a batch computed over the part of the frame where a render or the mask is not black, grown by the
+    # backbone's receptive field (LPIPS.window): the same values (outside it the compared taps are equal, their terms
+    # zero), on fewer pixels. The loader finds each image's nonzero box on its threads; the `ours` protocol only.
+    lpips_window: bool = False
     batch_size: Annotated[int, Bounds(ge=1)] = 8
     device: str = "auto"  # "auto": CUDA when available
     timing_frames: Annotated[int, Bounds(ge=1)] = 5  # frames timed per LOD for the FPS column (after one warm-up frame)
@@ -168,6 +172,16 @@ class LoadedBatch:
     masks: torch.Tensor
     renders: dict[int, torch.Tensor]
     labels: torch.Tensor | None = None
+    # With the loader's `boxes`: (B, 1 + LODs, 4) the nonzero box (top, bottom, left, right) of each view's mask and
+    # of each LOD's render of it, (H, 0, W, 0) where all is zero.
+    boxes: np.ndarray | None = None
+
+    def changed_box(self) -> tuple[int, int, int, int]:
+        """The box outside which every render equals its masked truth (black where the mask and the render are):
+        the union of `boxes`; (0, 1, 0, 1) where the whole batch is black."""
+        top, left = self.boxes[..., 0].min(), self.boxes[..., 2].min()
+        bottom, right = self.boxes[..., 1].max(), self.boxes[..., 3].max()
+        return (0, 1, 0, 1) if bottom <= top else (int(top), int(bottom), int(left), int(right))
 
 
 class BatchLoader:
@@ -176,14 +190,16 @@ class BatchLoader:
     `pin` (a GPU's copies then run asynchronously), a quarter of the float32 bytes either way. With a `labeller`
     (pig.metrics.regions.RegionLabeller) each view's region labels are cast on `label_workers` threads of their
     own, up to 4 views a thread ahead of the scoring (views of several cameras at once: each camera's pixel rays are
-    built once, on the thread that first needs them). Iterating yields LoadedBatch; `wait_s` sums the time the
-    scoring waited for decoding and labels."""
+    built once, on the thread that first needs them). With `boxes`, each decoding thread also finds its image's
+    nonzero box (LoadedBatch.boxes). Iterating yields LoadedBatch; `wait_s` sums the time the scoring waited for
+    decoding and labels."""
 
     def __init__(self, capture, readers: dict[int, RenderReader], batches: list[list[tuple[str, int]]], workers: int,
-                 pin: bool = False, ahead: int = 2, labeller: RegionLabeller | None = None, label_workers: int = 1):
+                 pin: bool = False, ahead: int = 2, labeller: RegionLabeller | None = None, label_workers: int = 1,
+                 boxes: bool = False):
         self.capture, self.readers, self.batches = capture, readers, batches
         self.workers, self.pin, self.ahead = workers, pin, ahead
-        self.labeller, self.label_workers = labeller, label_workers
+        self.labeller, self.label_workers, self.boxes = labeller, label_workers, boxes
         self.wait_s = 0.0
 
     def __iter__(self):
@@ -229,27 +245,49 @@ class BatchLoader:
                              {level: self._empty(*shape, 3) for level in self.readers})
         if self.labeller is not None:  # filled from the labels' own threads when the batch is due
             loaded.labels = self._empty(*shape)
+        if self.boxes:
+            loaded.boxes = np.zeros((len(views), 1 + len(self.readers), 4), dtype=np.int64)
+        box = (lambda i, k: loaded.boxes[i, k]) if self.boxes else (lambda i, k: None)
         jobs = []
         for i, view in enumerate(views):
-            jobs.append(pool.submit(self._truth, view, loaded.truths[i].numpy(), loaded.masks[i].numpy()))
-            jobs += [pool.submit(self._render, reader, view, loaded.renders[level][i].numpy())
-                     for level, reader in self.readers.items()]
+            jobs.append(pool.submit(self._truth, view, loaded.truths[i].numpy(), loaded.masks[i].numpy(), box(i, 0)))
+            jobs += [pool.submit(self._render, reader, view, loaded.renders[level][i].numpy(), box(i, 1 + k))
+                     for k, (level, reader) in enumerate(self.readers.items())]
         return loaded, jobs
 
     def _empty(self, *shape: int, dtype: torch.dtype = torch.uint8) -> torch.Tensor:
         return torch.empty(shape, dtype=dtype, pin_memory=self.pin)
 
-    def _truth(self, view: tuple[str, int], image: np.ndarray, mask: np.ndarray) -> None:
+    def _truth(self, view: tuple[str, int], image: np.ndarray, mask: np.ndarray, box: np.ndarray | None) -> None:
         image[...] = self.capture.image_u8(*view)
         mask[...] = self.capture.mask(*view)
+        if box is not None:
+            box[...] = nonzero_box(mask)
 
     @staticmethod
-    def _render(reader: RenderReader, view: tuple[str, int], out: np.ndarray) -> None:
+    def _render(reader: RenderReader, view: tuple[str, int], out: np.ndarray, box: np.ndarray | None) -> None:
         image = reader.image_u8(*view)
         if image.shape != out.shape:
             raise ValueError(f"{reader.source(*view)}: render is {image.shape[1]}x{image.shape[0]} but the capture's "
                              f"image is {out.shape[1]}x{out.shape[0]}")
         out[...] = image
+        if box is not None:
+            box[...] = nonzero_box(image)
+
+
+def nonzero_box(image: np.ndarray) -> tuple[int, int, int, int]:
+    """(top, bottom, left, right), half-open, of the pixels of an (H, W) or (H, W, C) bool or unsigned image with a
+    nonzero value; (H, 0, W, 0) when there is none."""
+    if image.dtype.kind not in "bu":
+        raise ValueError(f"nonzero_box: a bool or unsigned image, found {image.dtype}")
+    height, width = image.shape[:2]
+    # Row maxima rather than `any` over the pixel axes: numpy's max of uint8 is vectorised (a 1330 x 1150 render's
+    # box in 0.4 ms instead of 15).
+    rows = np.flatnonzero(image.reshape(height, -1).max(axis=1))
+    if rows.size == 0:
+        return height, 0, width, 0
+    cols = np.flatnonzero(image[rows[0]:rows[-1] + 1].max(axis=0).reshape(width, -1).max(axis=1))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 def _unit_floats(images: torch.Tensor, device) -> torch.Tensor:
@@ -270,9 +308,10 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
     rules = protocol(cfg.protocol)
     batches = view_batches(capture, split, cfg.batch_size)
     sizes = {name: (camera.width, camera.height) for name, camera in capture.cameras.items()}  # chunks checked against
+    windowed = lpips_net is not None and cfg.lpips_window and not rules.crop
     loader = BatchLoader(capture, {level: RenderReader(path, sizes) for level, path in level_dirs.items()}, batches,
                          cfg.encode_workers, pin=device.type == "cuda", labeller=labeller,
-                         label_workers=cfg.label_workers or host_cores())
+                         label_workers=cfg.label_workers or host_cores(), boxes=windowed)
     values: dict[int, list[dict[str, torch.Tensor]]] = {level: [] for level in level_dirs}
     fake_features = {level: FeatureStatistics() for level in level_dirs}
     real_features = FeatureStatistics()
@@ -286,13 +325,15 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
             yc = crop_to_mask_box(y, masks) if rules.crop else y
             truth_only = {"psnr_blank": psnr(torch.zeros_like(y), y),
                           "ssim_blank": ssim(torch.zeros_like(y), y, reduction="none")}
-            reference = lpips_net.reference(yc) if lpips_net is not None else None
+            window = lpips_net.window(loaded.changed_box(), *y.shape[-2:]) if windowed else None
+            reference = (lpips_net.reference(y[..., window[0], window[1]] if window else yc)
+                         if lpips_net is not None else None)
             if inception is not None:
                 real_features.update(inception(yc).double())
             labels = loaded.labels.to(device, non_blocking=True) if loaded.labels is not None else None
             for level, renders in loaded.renders.items():
                 x = _unit_floats(renders, device)
-                values[level].append(_score(x, y, masks, rules, lpips_net, reference, labels, truth_only))
+                values[level].append(_score(x, y, masks, rules, lpips_net, reference, labels, truth_only, window))
                 if inception is not None:
                     fake_features[level].update(inception(crop_to_mask_box(x, masks) if rules.crop else x).double())
             del reference
@@ -323,14 +364,21 @@ def evaluate_levels(capture, split: str, level_dirs: dict[int, Path], cfg: Evalu
     return results
 
 
-def _score(x, y, masks, rules: Protocol, lpips_net, reference, labels, truth_only: dict) -> dict[str, torch.Tensor]:
-    """(B,) metric values of renders `x` against the masked truth `y` by the protocol's `rules`, on their device."""
+def _score(x, y, masks, rules: Protocol, lpips_net, reference, labels, truth_only: dict,
+           window: tuple[slice, slice] | None = None) -> dict[str, torch.Tensor]:
+    """(B,) metric values of renders `x` against the masked truth `y` by the protocol's `rules`, on their device;
+    LPIPS over the frames' `window` (LPIPS.window) where one is given."""
     similarity = ssim_map(x, y)
+    if lpips_net is None:
+        perceptual = torch.full((len(x),), math.nan, device=x.device)
+    elif window is not None:
+        perceptual = lpips_net.distance(x[..., window[0], window[1]], reference, frame=tuple(x.shape[-2:]))
+    else:
+        perceptual = lpips_net.distance(crop_to_mask_box(x, masks) if rules.crop else x, reference)
     values = {
         "psnr": psnr(x, y),
         "ssim": similarity.flatten(1).mean(1) if rules.ssim_window == "gaussian11" else ssim_uniform(x, y).float(),
-        "lpips": (lpips_net.distance(crop_to_mask_box(x, masks) if rules.crop else x, reference)
-                  if lpips_net is not None else torch.full((len(x),), math.nan, device=x.device)),
+        "lpips": perceptual,
         **truth_only,
     }
     if labels is not None:
