@@ -185,8 +185,8 @@ class LPIPS(nn.Module):
         sizes, size = [], (height, width)
         for index, layer in enumerate(self.features[:self.taps[-1] + 1]):
             if isinstance(layer, (nn.Conv2d, nn.MaxPool2d)):
-                k, s, p = (_pair(getattr(layer, name))[0] for name in ("kernel_size", "stride", "padding"))
-                size = tuple((n + 2 * p - k) // s + 1 for n in size)
+                k, s, p = (_pair(getattr(layer, name)) for name in ("kernel_size", "stride", "padding"))
+                size = tuple((n + 2 * p[d] - k[d]) // s[d] + 1 for d, n in enumerate(size))
             if index in self.taps:
                 sizes.append(size)
         return sizes
@@ -215,7 +215,8 @@ class LPIPS(nn.Module):
 
 
 def receptive_field(features: nn.Sequential, last: int) -> tuple[int, int]:
-    """(receptive field in pixels, stride) of layer `last` of a stack of convolutions, pools and pointwise layers."""
+    """(receptive field in pixels, stride) of layer `last` of a stack of square convolutions, pools and pointwise
+    layers."""
     field, stride = 1, 1
     for layer in features[:last + 1]:
         if isinstance(layer, (nn.Conv2d, nn.MaxPool2d)):
