@@ -261,7 +261,7 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
     from pig.metrics.lpips import LPIPS
     from pig.metrics.psnr import psnr
     from pig.metrics.ssim import ssim_map
-    from pig.stages.evaluate import EvaluateConfig, nonzero_box, view_batches
+    from pig.stages.evaluate import EvaluateConfig, nonzero_box, union_box, view_batches
 
     cfg = load_section(load_preset(str(preset)), "evaluate", EvaluateConfig)
     dev = torch.device(device)
@@ -304,7 +304,7 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
             timed("SSIM", lambda: ssim_map(x, y).flatten(1).mean(1))
             timed(f"LPIPS-{cfg.lpips_net} pair (old: per LOD)", lambda: lpips(x, y))
             reference = timed(f"LPIPS-{cfg.lpips_net} truth taps (new: once)", lambda: lpips.reference(y))
-            timed(f"LPIPS-{cfg.lpips_net} render vs taps (new: per LOD)", lambda: lpips.distance(x, reference))
+            whole = timed(f"LPIPS-{cfg.lpips_net} render vs taps (new: per LOD)", lambda: lpips.distance(x, reference))
             timed("FID Inception, one image set", lambda: inception(x))
             if lowered:
                 low_reference = timed(f"LPIPS-{cfg.lpips_net} truth taps ({arithmetic})",
@@ -312,18 +312,17 @@ def breakdown(capture_dir: Path, split_dir: Path, preset: Path, device: str, bat
                 low = timed(f"LPIPS-{cfg.lpips_net} render vs taps ({arithmetic})",
                             lambda: lpips_low.distance(x, low_reference))
                 timed(fid_row, lambda: inception_low(x))
-                lpips_gap = max(lpips_gap, (low - lpips.distance(x, reference)).abs().max().item())
+                lpips_gap = max(lpips_gap, (low - whole).abs().max().item())
+                whole = low  # the window is compared in the preset's arithmetic
                 del low_reference
             if cfg.lpips_window:
-                boxes = np.array(timed("nonzero boxes of masks + renders (1 thread)",
-                                       lambda: [nonzero_box(image) for image in (*masks, *renders)]))
-                box = (boxes[:, 0].min(), boxes[:, 1].max(), boxes[:, 2].min(), boxes[:, 3].max())
-                rows_, cols_ = lpips_preset_net.window(tuple(map(int, box)), *x.shape[-2:])
+                boxes = timed("nonzero boxes of masks + renders (1 thread)",
+                              lambda: [nonzero_box(image) for image in (*masks, *renders)])
+                rows_, cols_ = lpips_preset_net.window(union_box(boxes) or (0, 1, 0, 1), *x.shape[-2:])
                 window_share.append((rows_.stop - rows_.start) * (cols_.stop - cols_.start) / x[0, 0].numel())
                 window_reference = timed(window_rows[0], lambda: lpips_preset_net.reference(y[..., rows_, cols_]))
                 windowed = timed(window_rows[1], lambda: lpips_preset_net.distance(
                     x[..., rows_, cols_], window_reference, frame=tuple(x.shape[-2:])))
-                whole = lpips_preset_net.distance(x, lpips_preset_net.reference(y))
                 window_gap = max(window_gap, (windowed - whole).abs().max().item())
                 del window_reference
         del reference

@@ -24,7 +24,7 @@ import torch
 
 from pig.data.capture import Capture
 from pig.metrics.lpips import LPIPS
-from pig.stages.evaluate import nonzero_box
+from pig.stages.evaluate import nonzero_box, union_box
 
 
 def stand_in_batch(capture: Capture, views: list[tuple[str, int]]) -> tuple[torch.Tensor, torch.Tensor, tuple]:
@@ -40,9 +40,7 @@ def stand_in_batch(capture: Capture, views: list[tuple[str, int]]) -> tuple[torc
         renders.append(render)
         boxes += [nonzero_box(mask), nonzero_box(render)]
     as_floats = lambda images: torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).float() / 255
-    b = np.array(boxes)
-    return as_floats(renders), as_floats(truths), (int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()),
-                                                   int(b[:, 3].max()))
+    return as_floats(renders), as_floats(truths), union_box(boxes) or (0, 1, 0, 1)
 
 
 def main(argv: list[str] | None = None) -> int:

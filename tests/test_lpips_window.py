@@ -8,7 +8,7 @@ import torch
 
 from pig.data.capture import Capture
 from pig.metrics.lpips import LPIPS, MIN_SIDE
-from pig.stages.evaluate import EvaluateConfig, LoadedBatch, evaluate_levels, nonzero_box
+from pig.stages.evaluate import EvaluateConfig, LoadedBatch, evaluate_levels, nonzero_box, union_box
 
 
 @pytest.mark.parametrize("net, field", [("vgg", 196), ("alex", 163)])
@@ -74,7 +74,8 @@ def test_changed_box_is_the_union_and_a_black_batch_a_pixel():
                                                                                  [[2, 5, 0, 1], empty]]))
     assert batch.changed_box() == (1, 5, 0, 4)
     batch.boxes = np.array([[empty, empty]])
-    assert batch.changed_box() == (0, 1, 0, 1)
+    assert batch.changed_box() == (0, 1, 0, 1) and union_box(batch.boxes) is None
+    assert union_box([nonzero_box(np.eye(3, dtype=bool)), (0, 1, 2, 3)]) == (0, 3, 0, 3)
 
 
 def _capture_with_a_small_subject(tmp_path, rng, frames: int, height: int, width: int):

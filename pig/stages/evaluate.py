@@ -179,9 +179,7 @@ class LoadedBatch:
     def changed_box(self) -> tuple[int, int, int, int]:
         """The box outside which every render equals its masked truth (black where the mask and the render are):
         the union of `boxes`; (0, 1, 0, 1) where the whole batch is black."""
-        top, left = self.boxes[..., 0].min(), self.boxes[..., 2].min()
-        bottom, right = self.boxes[..., 1].max(), self.boxes[..., 3].max()
-        return (0, 1, 0, 1) if bottom <= top else (int(top), int(bottom), int(left), int(right))
+        return union_box(self.boxes) or (0, 1, 0, 1)
 
 
 class BatchLoader:
@@ -288,6 +286,13 @@ def nonzero_box(image: np.ndarray) -> tuple[int, int, int, int]:
         return height, 0, width, 0
     cols = np.flatnonzero(image[rows[0]:rows[-1] + 1].max(axis=0).reshape(width, -1).max(axis=1))
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def union_box(boxes) -> tuple[int, int, int, int] | None:
+    """The smallest box holding `boxes` (..., 4) of `nonzero_box`; None when every one is empty."""
+    boxes = np.asarray(boxes).reshape(-1, 4)
+    top, bottom, left, right = boxes[:, 0].min(), boxes[:, 1].max(), boxes[:, 2].min(), boxes[:, 3].max()
+    return None if bottom <= top else (int(top), int(bottom), int(left), int(right))
 
 
 def _unit_floats(images: torch.Tensor, device) -> torch.Tensor:
